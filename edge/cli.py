@@ -1,0 +1,41 @@
+"""hp-edge command line.
+
+Each sub-command lives in a module of ``edge.commands`` that exposes ``register(subparsers)``.
+Those modules import nothing heavy at import time (CoolProp takes ~2 s to import), so
+``hp-edge --help`` stays fast; the heavy imports happen inside the command functions.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMAND_MODULES = (
+    "edge.commands.model_cmds",      # point, bench, fit-compressor
+    "edge.commands.sim_cmds",        # simulate
+    "edge.commands.analysis_cmds",   # calibrate, optimize, fit-surrogate, replay
+    "edge.commands.gateway_cmds",    # run, demo, read, check-config
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hp-edge",
+        description="Modbus TCP edge gateway with a digital twin of a two-stage ammonia heat pump.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    rc = args.func(args)
+    return int(rc or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,423 @@
+"""Simulator settings (config/simulator.yaml) and the register map it serves (tags.yaml, the
+advisory block of gateway.yaml), read with plain yaml.
+
+The simulator does not import ``edge.*``: it reads the same files independently, so a bug in the
+gateway's config or codec cannot hide itself in tests. Errors name the file, the entry and the key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+REPO_CONFIG = Path(__file__).resolve().parent.parent / "config"
+DEFAULT_CONFIG = REPO_CONFIG / "simulator.yaml"
+
+TYPES = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
+TYPE_LIMITS = {"int16": (-32768, 32767), "uint16": (0, 65535), "int32": (-2**31, 2**31 - 1),
+               "uint32": (0, 2**32 - 1)}
+BYTE_ORDERS = ("ABCD", "CDAB", "BADC", "DCBA")
+TAG_KEYS = {"register", "address", "type", "byte_order", "scale", "offset", "unit", "range",
+            "max_age_s", "sentinel", "pressure"}
+
+
+class SimConfigError(ValueError):
+    """Invalid simulator configuration; the message names file, entry and key."""
+
+
+# ------------------------------------------------------------------------------------ tag map --
+@dataclass(frozen=True)
+class TagSpec:
+    """One served value: engineering = raw * scale + offset."""
+    name: str
+    register: str                  # "input" | "holding"
+    address: int
+    type: str                      # int16 | uint16 | int32 | uint32 | float32
+    byte_order: str = "ABCD"
+    scale: float = 1.0
+    offset: float = 0.0
+    unit: str = ""
+    range: tuple[float, float] = (-math.inf, math.inf)
+    sentinel: int | None = None
+    pressure: str | None = None    # gauge | absolute | None
+
+    @property
+    def count(self) -> int:
+        return TYPES[self.type]
+
+
+def read_tags(path: str | Path) -> dict[str, TagSpec]:
+    """Read tags.yaml -> {name: TagSpec}, checking what the simulator relies on."""
+    path = Path(path)
+    doc = _load(path)
+    tags = doc.get("tags") if isinstance(doc, dict) else None
+    if not isinstance(tags, dict) or not tags:
+        raise SimConfigError(f"{path}: expected a non-empty mapping 'tags'")
+    out: dict[str, TagSpec] = {}
+    used: dict[tuple[str, int], str] = {}
+    for name, t in tags.items():
+        where = f"{path}: tag '{name}'"
+        if not isinstance(t, dict):
+            raise SimConfigError(f"{where}: expected a mapping")
+        unknown = set(t) - TAG_KEYS
+        if unknown:
+            raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+        for key in ("register", "address", "type"):
+            if key not in t:
+                raise SimConfigError(f"{where}: missing key '{key}'")
+        if t["register"] not in ("input", "holding"):
+            raise SimConfigError(f"{where}: key 'register' must be input or holding")
+        if t["type"] not in TYPES:
+            raise SimConfigError(f"{where}: key 'type' must be one of {', '.join(TYPES)}")
+        addr = t["address"]
+        if not isinstance(addr, int) or isinstance(addr, bool) or not 0 <= addr <= 65535 - 1:
+            raise SimConfigError(f"{where}: key 'address' must be an integer 0..65534")
+        bo = t.get("byte_order", "ABCD")
+        if bo not in BYTE_ORDERS:
+            raise SimConfigError(f"{where}: key 'byte_order' must be one of {', '.join(BYTE_ORDERS)}")
+        scale = _number(t.get("scale", 1.0), f"{where}: key 'scale'")
+        if scale == 0:
+            raise SimConfigError(f"{where}: key 'scale' must not be 0")
+        rng = t.get("range", [-math.inf, math.inf])
+        if not (isinstance(rng, list) and len(rng) == 2):
+            raise SimConfigError(f"{where}: key 'range' must be [low, high]")
+        spec = TagSpec(
+            name=str(name), register=t["register"], address=addr, type=t["type"], byte_order=bo,
+            scale=scale, offset=_number(t.get("offset", 0.0), f"{where}: key 'offset'"),
+            unit=str(t.get("unit", "")),
+            range=(_number(rng[0], f"{where}: key 'range'"), _number(rng[1], f"{where}: key 'range'")),
+            sentinel=t.get("sentinel"), pressure=t.get("pressure"))
+        for i in range(spec.count):
+            key = (spec.register, addr + i)
+            if key in used:
+                raise SimConfigError(f"{where}: key 'address' overlaps tag '{used[key]}'")
+            used[key] = spec.name
+        out[spec.name] = spec
+    return out
+
+
+@dataclass(frozen=True)
+class AdvisoryBlock:
+    register: str
+    start: int
+    size: int
+
+    def contains(self, address: int, count: int) -> bool:
+        return self.start <= address and address + count <= self.start + self.size
+
+
+def read_advisory(path: str | Path) -> AdvisoryBlock:
+    """The writable advisory block of gateway.yaml (only register, start, size are used here)."""
+    path = Path(path)
+    doc = _load(path)
+    adv = doc.get("advisory") if isinstance(doc, dict) else None
+    if not isinstance(adv, dict):
+        raise SimConfigError(f"{path}: missing mapping 'advisory'")
+    for key in ("start", "size"):
+        v = adv.get(key)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+            raise SimConfigError(f"{path}: advisory: key '{key}' must be a non-negative integer")
+    if adv.get("register", "holding") != "holding":
+        raise SimConfigError(f"{path}: advisory: key 'register' must be holding (it is written)")
+    if not 1 <= adv["size"] <= 123 or adv["start"] + adv["size"] > 65536:
+        raise SimConfigError(f"{path}: advisory: key 'size' must be 1..123 inside the address space")
+    return AdvisoryBlock("holding", adv["start"], adv["size"])
+
+
+# ---------------------------------------------------------------------------- simulator.yaml --
+@dataclass(frozen=True)
+class TimeCfg:
+    tick_s: float = 5.0
+    solve_interval_s: float = 60.0
+    truth_interval_s: float = 60.0
+    optimum_interval_s: float = 3600.0
+
+
+@dataclass(frozen=True)
+class CompressorTruth:
+    eta_is_scale: float = 1.0
+    eta_is_pi_tilt: float = 0.0
+    eta_vol_scale: float = 1.0
+    eta_vol_n_tilt: float = 0.0
+
+
+@dataclass(frozen=True)
+class TruthCfg:
+    CF_eva: float = 1.0
+    CF_con: float = 1.0
+    CF_DSH: float = 1.0
+    CF_SC: float = 1.0
+    motor_efficiency: float = 1.0
+    compressors: dict = field(default_factory=dict)   # "LS"/"HS" -> CompressorTruth
+
+
+@dataclass(frozen=True)
+class FlowCfg:
+    exponent: float = 0.8
+    water_side_share_eva: float = 0.5
+    water_side_share_con: float = 0.4
+    V_source_nom_m3h: float = 192.0
+    V_sink_nom_m3h: float = 62.0
+
+
+@dataclass(frozen=True)
+class FoulingCfg:
+    R_th_f_initial_K_per_kW: float = 2.5e-3
+    R_th_f_inf_K_per_kW: float = 6.0e-3
+    tau_days: float = 15.0
+    CF_dp_f_initial: float = 1.08
+    CF_dp_f_inf: float = 1.4
+    tau_dp_days: float = 20.0
+
+
+@dataclass(frozen=True)
+class CipCfg:
+    first_after_days: float = 9.0
+    interval_days: float = 14.0
+    jitter_days: float = 1.0
+    duration_days: float = 2.5
+    removal_share: float = 0.15
+    dp_removal_share: float = 0.30
+
+
+@dataclass(frozen=True)
+class ControlCfg:
+    T_source_out_sp_C: float = 18.0
+    p_m_sp_bar_g: float = 16.0
+    p_m_sp_limits_bar_g: tuple = (4.0, 35.0)
+    standstill_T_C: float = 20.0
+
+
+@dataclass(frozen=True)
+class ProfileCfg:
+    T_source_in_mean_C: float = 24.0
+    T_source_in_daily_amp_K: float = 0.8
+    T_source_in_peak_hour: float = 16.0
+    T_sink_in_mean_C: float = 40.0
+    T_sink_in_daily_amp_K: float = 0.6
+    T_sink_in_peak_hour: float = 14.0
+    V_sink_mean_m3h: float = 62.0
+    V_sink_daily_amp: float = 0.10
+    V_sink_peak_hour: float = 7.0
+    V_source_mean_m3h: float = 192.0
+    V_source_daily_amp: float = 0.03
+    V_source_peak_hour: float = 11.0
+    weather_sigma: float = 1.0
+    weather_tau_h: float = 36.0
+    weather_T_source_K: float = 0.5
+    weather_V_sink: float = -0.06
+    p_source_in_bar_g: float = 2.5
+    limits_T_source_in_C: tuple = (22.5, 25.5)
+    limits_V_sink_m3h: tuple = (45.0, 75.0)
+
+
+@dataclass(frozen=True)
+class LagCfg:
+    temperature: float = 180.0
+    pressure: float = 60.0
+    flow: float = 20.0
+    power: float = 20.0
+    speed: float = 15.0
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """One fault. Tag faults: stuck, out_of_range, nan. Server faults: slow, drop, frozen, restart."""
+    kind: str
+    tag: str | None = None
+    at_h: float | None = None          # scheduled start (plant hours after start_time); None = now
+    duration_h: float | None = None    # None = until switched off / the end
+    value: float | None = None         # out_of_range: engineering value served
+    delay_s: float = 2.0               # slow
+    probability: float = 1.0           # slow, drop
+    down_s: float = 2.0                # restart
+
+
+TAG_FAULTS = ("stuck", "out_of_range", "nan")
+SERVER_FAULTS = ("slow", "drop", "frozen", "restart")
+FAULT_KINDS = TAG_FAULTS + SERVER_FAULTS
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    path: Path | None = None
+    tags_file: Path = REPO_CONFIG / "tags.yaml"
+    gateway_file: Path = REPO_CONFIG / "gateway.yaml"
+    plant_file: Path = REPO_CONFIG / "plant.yaml"
+    device_id: int = 1
+    seed: int = 1
+    start_time: str = "2024-03-01T00:00:00Z"
+    ambient_pressure_bar: float = 1.01325
+    time: TimeCfg = TimeCfg()
+    truth: TruthCfg = TruthCfg()
+    flow_dependence: FlowCfg = FlowCfg()
+    fouling: FoulingCfg = FoulingCfg()
+    cip: CipCfg = CipCfg()
+    control: ControlCfg = ControlCfg()
+    profiles: ProfileCfg = ProfileCfg()
+    lags_s: LagCfg = LagCfg()
+    noise: dict = field(default_factory=dict)       # tag -> sigma [engineering unit]
+    faults: tuple = ()                              # FaultSpec
+
+    def replace(self, **kw) -> "SimulatorConfig":
+        return dataclasses.replace(self, **kw)
+
+    @property
+    def start_epoch(self) -> float:
+        from datetime import datetime, timezone
+        s = self.start_time.replace("Z", "+00:00")
+        dt = datetime.fromisoformat(s)
+        if dt.tzinfo is None:
+            dt = dt.replace(tzinfo=timezone.utc)
+        return dt.timestamp()
+
+
+_SECTIONS = {"time": TimeCfg, "flow_dependence": FlowCfg, "fouling": FoulingCfg, "cip": CipCfg,
+             "control": ControlCfg, "profiles": ProfileCfg, "lags_s": LagCfg}
+
+
+def load_simulator_config(path: str | Path | None = None) -> SimulatorConfig:
+    """Read config/simulator.yaml (or ``path``); relative file names resolve against its folder."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    doc = _load(path)
+    if not isinstance(doc, dict):
+        raise SimConfigError(f"{path}: expected a mapping at top level")
+    return config_from_dict(doc, path)
+
+
+def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
+    where = str(path) if path else "<simulator config>"
+    base = path.parent if path else REPO_CONFIG
+    known = {f.name for f in dataclasses.fields(SimulatorConfig)} - {"path"}
+    unknown = set(doc) - known
+    if unknown:
+        raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+    kw: dict = {"path": path}
+    for key in ("tags_file", "gateway_file", "plant_file"):
+        if key in doc:
+            p = Path(str(doc[key]))
+            kw[key] = p if p.is_absolute() else base / p
+    for key in ("device_id", "seed"):
+        if key in doc:
+            v = doc[key]
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise SimConfigError(f"{where}: key '{key}' must be a non-negative integer")
+            kw[key] = v
+    if "device_id" in kw and kw["device_id"] > 247:
+        raise SimConfigError(f"{where}: key 'device_id' must be 0..247")
+    if "start_time" in doc:
+        kw["start_time"] = str(doc["start_time"])
+    if "ambient_pressure_bar" in doc:
+        kw["ambient_pressure_bar"] = _number(doc["ambient_pressure_bar"],
+                                             f"{where}: key 'ambient_pressure_bar'")
+    for key, cls in _SECTIONS.items():
+        if key in doc:
+            kw[key] = _dataclass_from(cls, doc[key], f"{where}: {key}")
+    if "truth" in doc:
+        t = dict(doc["truth"] or {})
+        comps = t.pop("compressors", {}) or {}
+        truth = _dataclass_from(TruthCfg, t, f"{where}: truth")
+        if not isinstance(comps, dict) or set(comps) - {"LS", "HS"}:
+            raise SimConfigError(f"{where}: truth: key 'compressors' takes LS and HS only")
+        kw["truth"] = dataclasses.replace(truth, compressors={
+            k: _dataclass_from(CompressorTruth, v, f"{where}: truth.compressors.{k}")
+            for k, v in comps.items()})
+    if "noise" in doc:
+        noise = doc["noise"] or {}
+        if not isinstance(noise, dict):
+            raise SimConfigError(f"{where}: key 'noise' must map tag -> sigma")
+        kw["noise"] = {str(k): _number(v, f"{where}: noise: key '{k}'") for k, v in noise.items()}
+    if "faults" in doc:
+        items = doc["faults"] or []
+        if not isinstance(items, list):
+            raise SimConfigError(f"{where}: key 'faults' must be a list")
+        kw["faults"] = tuple(fault_from_dict(f, f"{where}: faults[{i}]") for i, f in enumerate(items))
+    cfg = SimulatorConfig(**kw)
+    _check(cfg, where)
+    return cfg
+
+
+def fault_from_dict(d: dict, where: str = "fault") -> FaultSpec:
+    spec = _dataclass_from(FaultSpec, d, where, required=("kind",))
+    if spec.kind not in FAULT_KINDS:
+        raise SimConfigError(f"{where}: key 'kind' must be one of {', '.join(FAULT_KINDS)}")
+    if spec.kind in TAG_FAULTS and not spec.tag:
+        raise SimConfigError(f"{where}: key 'tag' is required for kind {spec.kind}")
+    if spec.kind in SERVER_FAULTS and spec.tag:
+        raise SimConfigError(f"{where}: key 'tag' does not apply to kind {spec.kind}")
+    if not 0.0 <= spec.probability <= 1.0:
+        raise SimConfigError(f"{where}: key 'probability' must be within 0..1")
+    if spec.delay_s < 0 or spec.down_s < 0:
+        raise SimConfigError(f"{where}: delay_s and down_s must be >= 0")
+    return spec
+
+
+def _check(cfg: SimulatorConfig, where: str) -> None:
+    try:
+        cfg.start_epoch
+    except ValueError as exc:
+        raise SimConfigError(f"{where}: key 'start_time' is not ISO 8601: {exc}") from None
+    t = cfg.time
+    if not (t.tick_s > 0 and t.solve_interval_s >= t.tick_s and t.truth_interval_s > 0
+            and t.optimum_interval_s > 0):
+        raise SimConfigError(f"{where}: time: need tick_s > 0 and solve_interval_s >= tick_s")
+    for name in ("removal_share", "dp_removal_share"):
+        if not 0.0 <= getattr(cfg.cip, name) <= 1.0:
+            raise SimConfigError(f"{where}: cip: key '{name}' must be within 0..1")
+    if cfg.cip.interval_days <= cfg.cip.duration_days + 2 * cfg.cip.jitter_days:
+        raise SimConfigError(f"{where}: cip: key 'interval_days' must exceed duration + 2 jitter")
+    lo, hi = cfg.control.p_m_sp_limits_bar_g
+    if not lo < hi:
+        raise SimConfigError(f"{where}: control: key 'p_m_sp_limits_bar_g' must be [low, high]")
+    for name in ("water_side_share_eva", "water_side_share_con"):
+        if not 0.0 <= getattr(cfg.flow_dependence, name) < 1.0:
+            raise SimConfigError(f"{where}: flow_dependence: key '{name}' must be within 0..1")
+    for f in dataclasses.fields(LagCfg):
+        if getattr(cfg.lags_s, f.name) < 0:
+            raise SimConfigError(f"{where}: lags_s: key '{f.name}' must be >= 0")
+    if any(v < 0 for v in cfg.noise.values()):
+        raise SimConfigError(f"{where}: noise: sigmas must be >= 0")
+
+
+# ----------------------------------------------------------------------------------- helpers --
+def _load(path: Path):
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return yaml.safe_load(fh)
+    except OSError as exc:
+        raise SimConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise SimConfigError(f"{path}: invalid YAML: {exc}") from None
+
+
+def _number(v, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise SimConfigError(f"{where} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _dataclass_from(cls, d, where: str, required: tuple = ()):
+    if not isinstance(d, dict):
+        raise SimConfigError(f"{where}: expected a mapping")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(d) - set(fields)
+    if unknown:
+        raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+    for key in required:
+        if key not in d:
+            raise SimConfigError(f"{where}: missing key '{key}'")
+    kw = {}
+    for key, v in d.items():
+        default = fields[key].default
+        if isinstance(default, tuple):
+            if not (isinstance(v, list) and len(v) == len(default)):
+                raise SimConfigError(f"{where}: key '{key}' must be a list of {len(default)} numbers")
+            kw[key] = tuple(_number(x, f"{where}: key '{key}'") for x in v)
+        elif isinstance(default, float) or (default is None and key not in ("tag", "kind")):
+            kw[key] = None if v is None else _number(v, f"{where}: key '{key}'")
+        else:
+            kw[key] = v if v is None else str(v)
+    return cls(**kw)

@@ -1,0 +1,495 @@
+"""The two-stage ammonia heat pump as a quasi-steady-state flowsheet (SPEC §3).
+
+Given T_source,out as an input, the evaporator side is explicit (closed-form T_e). What remains is
+small: the condensing temperature T_c (the condenser zone's UA must carry its duty) and, when the HS
+compressor sits at a speed bound, the intermediate saturation temperature T_m. The HS-speed limit is
+a branch choice, not a kink inside one Newton iteration:
+
+- branch ``"sp"``:     N_HS free, p_m = p_m,sp          -> 1 unknown  (T_c)
+- branch ``"hs_max"``: N_HS = N_max, p_m floats above   -> 2 unknowns (T_m outer, T_c inner)
+- branch ``"hs_min"``: N_HS = N_min, p_m floats below   -> 2 unknowns
+
+Each residual evaluation is explicit apart from tiny scalar loops (compressor speed from flow, the
+HS mass flow through the intercooler balance), so the secant iterations converge in 2-4 steps when
+warm-started from the previous point. Failures always raise a ``ModelError`` subclass, never None/NaN.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from .fluid import Fluid, PropertyError, SatState, get_fluid
+from .params import CycleInputs, PlantParams
+from .units import BAR, K_to_C, Pa_to_barg
+
+ENERGY_TOL = 1e-10        # condenser-zone residual, relative to Q_source
+SPEED_TOL = 1e-9          # HS speed-bound residual, relative to nominal speed
+MAX_ITER = 40
+
+
+class ModelError(Exception):
+    """Base of every model failure; ``reason`` is a short machine-readable code."""
+
+    def __init__(self, message: str, reason: str = "error", result: "CycleResult | None" = None):
+        super().__init__(message)
+        self.reason = reason
+        self.result = result
+
+
+class ConvergenceError(ModelError):
+    """The solver did not find a solution (no root bracketed, iteration limit, property failure)."""
+
+
+class InfeasibleOperation(ModelError):
+    """The point was solved but violates an operating limit (e.g. LS speed outside 700-1800 rpm).
+
+    ``result`` carries the complete solved state, so batch callers can still use it.
+    """
+
+
+@dataclass(frozen=True)
+class State:
+    T: float    # [K]
+    p: float    # [Pa]
+    h: float    # [J/kg]
+
+
+@dataclass
+class CycleResult:
+    """A solved operating point. SI units: Pa (absolute), K, W, kg/s, J/kg."""
+    branch: str
+    p_e: float
+    p_m: float
+    p_c: float
+    T_e: float
+    T_m: float
+    T_c: float
+    N_LS: float
+    N_HS: float
+    eta_is_LS: float
+    eta_is_HS: float
+    eta_vol_LS: float
+    eta_vol_HS: float
+    m_LS: float
+    m_HS: float
+    Q_source: float
+    Q_sink: float
+    Q_DSH: float
+    Q_con: float
+    Q_SC: float
+    W_LS: float
+    W_HS: float
+    T_sink_out: float
+    T_w_SC_out: float       # water between SC and condenser [K]
+    T_w_con_out: float      # water between condenser and DSH [K]
+    dp_source: float
+    superheat: float
+    subcooling: float
+    pinch: float
+    dsh_condensing: bool    # DSH outlet reached saturation (its surplus UA left unused)
+    states: dict[str, State] = field(default_factory=dict)
+    iterations: int = 0
+    _slope_c: float = 0.0   # d(residual)/dT_c from the last solve (warm start)
+    _slope_m: float = 0.0   # d(n_HS)/dT_m from the last solve (warm start)
+    _warm: dict = field(default_factory=dict)   # (p, rho, T) of the isentropic discharge states
+
+    @property
+    def W_total(self) -> float:
+        return self.W_LS + self.W_HS
+
+    @property
+    def COP(self) -> float:
+        return self.Q_sink / self.W_total
+
+    @property
+    def hs_saturated(self) -> bool:
+        return self.branch == "hs_max"
+
+    @property
+    def energy_residual(self) -> float:
+        """(Q_source + W_total - Q_sink) / Q_sink: must be ~0 (adiabatic compressors)."""
+        return (self.Q_source + self.W_total - self.Q_sink) / self.Q_sink
+
+    def to_dict(self, ambient_pressure: float = 1.01325e5, states: bool = True) -> dict:
+        """Canonical keys and units (bar absolute, degC, kW, rpm) as printed by `hp-edge point`."""
+        d = {
+            "branch": self.branch, "hs_saturated": self.hs_saturated,
+            "p_e_bar": self.p_e / BAR, "p_m_bar": self.p_m / BAR, "p_c_bar": self.p_c / BAR,
+            "p_m_barg": Pa_to_barg(self.p_m, ambient_pressure / BAR),
+            "T_e_C": K_to_C(self.T_e), "T_m_C": K_to_C(self.T_m), "T_c_C": K_to_C(self.T_c),
+            "N_LS_rpm": self.N_LS, "N_HS_rpm": self.N_HS,
+            "Q_sink_kW": self.Q_sink / 1e3, "Q_source_kW": self.Q_source / 1e3,
+            "Q_DSH_kW": self.Q_DSH / 1e3, "Q_con_kW": self.Q_con / 1e3, "Q_SC_kW": self.Q_SC / 1e3,
+            "W_LS_kW": self.W_LS / 1e3, "W_HS_kW": self.W_HS / 1e3, "W_total_kW": self.W_total / 1e3,
+            "COP": self.COP, "T_sink_out_C": K_to_C(self.T_sink_out),
+            "eta_is_LS": self.eta_is_LS, "eta_is_HS": self.eta_is_HS,
+            "eta_vol_LS": self.eta_vol_LS, "eta_vol_HS": self.eta_vol_HS,
+            "m_LS_kg_s": self.m_LS, "m_HS_kg_s": self.m_HS,
+            "superheat_K": self.superheat, "subcooling_K": self.subcooling, "pinch_K": self.pinch,
+            "dp_source_bar": self.dp_source / BAR, "energy_residual": self.energy_residual,
+        }
+        if states:
+            d["states"] = {k: {"T_C": K_to_C(s.T), "p_bar": s.p / BAR, "h_J_kg": s.h}
+                           for k, s in self.states.items()}
+        return d
+
+
+# --------------------------------------------------------------------------------------------------
+# components
+# --------------------------------------------------------------------------------------------------
+def evaporator(inp: CycleInputs, params: PlantParams) -> tuple[float, float]:
+    """(Q_source [W], T_e [K]) of the flooded evaporator.
+
+    Refrigerant at T_e along the whole surface, water cooled from T_source,in to T_source,out:
+    UA*LMTD = Q_source with 1/UA = 1/(CF_eva*U*A) + R_th,f gives T_e in closed form:
+    T_e = (T_out*e^NTU - T_in) / (e^NTU - 1), NTU = UA / C_source.
+    """
+    C = params.cp_w * params.rho_w * inp.V_source
+    dT = inp.T_source_in - inp.T_source_out
+    if not (C > 0.0 and dT > 0.0):
+        raise InfeasibleOperation(
+            f"source must be cooled with positive flow (V_source={inp.V_source:.4g} m3/s, "
+            f"T_in-T_out={dT:.4g} K)", reason="bad_source")
+    NTU = params.UA_eva / C
+    e = math.exp(NTU)
+    T_e = (inp.T_source_out * e - inp.T_source_in) / (e - 1.0)
+    return C * dT, T_e
+
+
+def counterflow_eps(C_a: float, C_b: float, UA: float) -> tuple[float, float]:
+    """(effectiveness, C_min) of a counterflow exchanger between capacity rates C_a, C_b [W/K]."""
+    C_min, C_max = (C_a, C_b) if C_a < C_b else (C_b, C_a)
+    NTU = UA / C_min
+    Cr = C_min / C_max
+    if abs(1.0 - Cr) < 1e-9:
+        return NTU / (1.0 + NTU), C_min
+    x = math.exp(-NTU * (1.0 - Cr))
+    return (1.0 - x) / (1.0 - Cr * x), C_min
+
+
+# --------------------------------------------------------------------------------------------------
+# the flowsheet for fixed (T_m, T_c)
+# --------------------------------------------------------------------------------------------------
+class _Point:
+    """Evaluates the flowsheet at trial saturation temperatures; keeps warm-start guesses."""
+
+    def __init__(self, inp: CycleInputs, params: PlantParams, fluid: Fluid, guess: CycleResult | None):
+        self.inp, self.par, self.fl = inp, params, fluid
+        self.Q_source, self.T_e = evaporator(inp, params)
+        if self.T_e <= fluid.T_triple + 1.0:
+            raise InfeasibleOperation(f"evaporating temperature {K_to_C(self.T_e):.2f} degC is below "
+                                      "the fluid's range", reason="T_e_low")
+        self.sat_e = fluid.sat_T(self.T_e)
+        self.p_e = self.sat_e.p
+        self.T1 = self.T_e + params.superheat
+        self.h1, self.s1, self.rho1 = fluid.vapour_pT(self.p_e, self.T1)
+        self.C_w = params.cp_w * params.rho_w * inp.V_sink
+        if not self.C_w > 0.0:
+            raise InfeasibleOperation(f"sink flow must be positive (V_sink={inp.V_sink:.4g} m3/s)",
+                                      reason="bad_sink")
+        self.UA_DSH = params.CF_DSH * params.U_DSH * params.A_DSH
+        self.UA_con = params.CF_con * params.U_con * params.A_con
+        self.UA_SC = params.CF_SC * params.U_SC * params.A_SC
+        self.eps_con = 1.0 - math.exp(-self.UA_con / self.C_w)
+        # warm-start memory
+        self.n_LS = guess.N_LS / params.comp_LS.N_nom if guess else 1.0
+        self.n_HS = guess.N_HS / params.comp_HS.N_nom if guess else 1.0
+        self.m_HS = guess.m_HS if guess else None
+        if guess:
+            for stage, g in guess._warm.items():
+                setattr(self, "_g_" + stage, g)
+        self._ls_cache: tuple | None = None
+        self.evals = 0
+
+    def ls_side(self, sat_m: SatState):
+        """LS stage for intermediate saturation state sat_m (depends on T_m only)."""
+        if self._ls_cache is not None and self._ls_cache[0] == sat_m.T:
+            return self._ls_cache[1]
+        par, fl = self.par, self.fl
+        m_LS = self.Q_source / (self.h1 - sat_m.h_f)
+        pi = sat_m.p / self.p_e
+        n, ev = par.comp_LS.speed_for_flow(m_LS, self.rho1, pi, self.n_LS)
+        self.n_LS = n
+        eta = par.comp_LS.eta_is_at(pi, n)
+        if not 0.05 < eta <= 1.0:
+            raise InfeasibleOperation(f"LS isentropic efficiency {eta:.3f} outside (0.05, 1] at "
+                                      f"pressure ratio {pi:.3f}, {n * par.comp_LS.N_nom:.0f} rpm",
+                                      reason="eta_out_of_range")
+        h2s, T2s, rho2s = fl.isentropic(sat_m.p, self.s1, self._rhoT_guess("LS", sat_m.p))
+        self._remember("LS", sat_m.p, rho2s, T2s)
+        h2 = self.h1 + (h2s - self.h1) / eta
+        out = (m_LS, n, ev, eta, h2s, T2s, h2)
+        self._ls_cache = (sat_m.T, out)
+        return out
+
+    def _rhoT_guess(self, stage: str, p: float):
+        g = getattr(self, "_g_" + stage, None)
+        if g is None:
+            return None
+        p0, rho0, T0 = g
+        # scale the previous density with pressure (ideal-gas-like), keep T
+        return (rho0 * p / p0, T0 * (p / p0) ** 0.2)
+
+    def _remember(self, stage: str, p: float, rho: float, T: float) -> None:
+        setattr(self, "_g_" + stage, (p, rho, T))
+
+    def evaluate(self, T_m: float, T_c: float, full: bool = False):
+        """Residual of the condenser zone [-] (and HS speed ratio) at (T_m, T_c)."""
+        self.evals += 1
+        par, fl, inp = self.par, self.fl, self.inp
+        if not (self.T_e < T_m < T_c):
+            raise ConvergenceError(f"trial temperatures out of order: T_e={self.T_e:.3f} K, "
+                                   f"T_m={T_m:.3f} K, T_c={T_c:.3f} K", reason="no_convergence")
+        sat_m = fl.sat_T(T_m)
+        sat_c = fl.sat_T(T_c)
+        m_LS, n_LS, ev_LS, eta_LS, h2s, T2s, h2 = self.ls_side(sat_m)
+        # subcooler: liquid capacity from the saturated-liquid secant over 5 K
+        cp_l = (sat_c.h_f - fl.h_liq_sat(T_c - 5.0)) / 5.0
+        dT_SC = T_c - inp.T_sink_in
+        if dT_SC <= 0.0:
+            raise ConvergenceError("condensing temperature below sink inlet", reason="no_convergence")
+        # HS mass flow: intercooler balance m_HS*(h_g,m - h_SC,out) = m_LS*(h2 - h_f,m), where the SC
+        # outlet depends weakly on m_HS -> fixed point (contraction factor << 1)
+        num = m_LS * (h2 - sat_m.h_f)
+        m = self.m_HS if self.m_HS else num / (sat_m.h_g - sat_c.h_f)
+        for _ in range(60):
+            eps, C_min = counterflow_eps(m * cp_l, self.C_w, self.UA_SC)
+            Q_SC = eps * C_min * dT_SC
+            h_SC = sat_c.h_f - Q_SC / m
+            m_new = num / (sat_m.h_g - h_SC)
+            if abs(m_new - m) <= 1e-14 * m:
+                m = m_new
+                break
+            m = m_new
+        eps, C_min = counterflow_eps(m * cp_l, self.C_w, self.UA_SC)
+        Q_SC = eps * C_min * dT_SC
+        h_SC = sat_c.h_f - Q_SC / m
+        self.m_HS = m
+        # HS compressor
+        pi_HS = sat_c.p / sat_m.p
+        n_HS, ev_HS = par.comp_HS.speed_for_flow(m, sat_m.rho_g, pi_HS, self.n_HS)
+        self.n_HS = n_HS
+        eta_HS = par.comp_HS.eta_is_at(pi_HS, n_HS)
+        if not 0.05 < eta_HS <= 1.0:
+            raise InfeasibleOperation(f"HS isentropic efficiency {eta_HS:.3f} outside (0.05, 1] at "
+                                      f"pressure ratio {pi_HS:.3f}", reason="eta_out_of_range")
+        h4s, T4s, rho4s = fl.isentropic(sat_c.p, sat_m.s_g, self._rhoT_guess("HS", sat_c.p))
+        self._remember("HS", sat_c.p, rho4s, T4s)
+        h4 = sat_m.h_g + (h4s - sat_m.h_g) / eta_HS
+        # actual discharge temperature: the isentropic one plus the extra enthalpy over a vapour cp
+        # estimated on the isentropic line (exact T is taken from a flash for the final state only)
+        cp_v4 = (h4s - sat_c.h_g) / (T4s - T_c) if T4s > T_c + 1e-6 else 3000.0
+        T4 = T4s + (h4 - h4s) / cp_v4
+        # condenser unit, water SC -> condenser -> DSH
+        T_w1 = inp.T_sink_in + Q_SC / self.C_w
+        Q_con = self.eps_con * self.C_w * (T_c - T_w1)
+        T_w2 = T_w1 + Q_con / self.C_w
+        cp_v = (h4 - sat_c.h_g) / (T4 - T_c)
+        eps_D, C_min_D = counterflow_eps(m * cp_v, self.C_w, self.UA_DSH)
+        Q_DSH = eps_D * C_min_D * (T4 - T_w2)
+        Q_DSH_max = m * (h4 - sat_c.h_g)
+        dsh_condensing = Q_DSH > Q_DSH_max
+        if dsh_condensing:
+            Q_DSH = Q_DSH_max
+        h_DSH = h4 - Q_DSH / m
+        r = (Q_con - m * (h_DSH - sat_c.h_f)) / self.Q_source
+        if not full:
+            return r, n_HS
+        return dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
+                    h2s=h2s, T2s=T2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
+                    h4s=h4s, T4s=T4s, h4=h4, T4=T4, cp_l=cp_l, cp_v=cp_v, Q_SC=Q_SC, h_SC=h_SC,
+                    Q_con=Q_con, Q_DSH=Q_DSH, h_DSH=h_DSH, T_w1=T_w1, T_w2=T_w2,
+                    dsh_condensing=dsh_condensing, r=r)
+
+
+# --------------------------------------------------------------------------------------------------
+# scalar root finding: secant with a remembered slope, bracketed fallback
+# --------------------------------------------------------------------------------------------------
+def _secant(f, x0: float, slope: float, tol: float, lo: float, hi: float, what: str):
+    """Root of f in [lo, hi] from x0 using a secant iteration seeded with ``slope``.
+
+    Returns (x, f(x), slope). Falls back to bisection-safeguarded steps once a sign change is
+    bracketed. Raises ConvergenceError with the reason when no root is found.
+    """
+    x = min(max(x0, lo), hi)
+    fx = f(x)
+    if abs(fx) < tol:
+        return x, fx, slope
+    a = b = None          # bracket: f(a) < 0 < f(b) in terms of sign of fx
+    fa = fb = None
+    if not (slope and math.isfinite(slope)):
+        h = 1e-3 if abs(x) > 1 else 1e-4
+        x1 = x + h if x + h <= hi else x - h
+        slope = (f(x1) - fx) / (x1 - x)
+    for _ in range(MAX_ITER):
+        if fx < 0:
+            a, fa = x, fx
+        else:
+            b, fb = x, fx
+        if slope == 0.0 or not math.isfinite(slope):
+            raise ConvergenceError(f"{what}: zero slope", reason="no_convergence")
+        xn = x - fx / slope
+        if a is not None and b is not None:
+            left, right = (a, b) if a < b else (b, a)
+            if not (left < xn < right):
+                xn = 0.5 * (a + b)
+        else:
+            # no bracket yet: limit the step and stay in [lo, hi]
+            step = max(min(xn - x, 10.0), -10.0)
+            xn = min(max(x + step, lo), hi)
+            if xn == x:
+                raise ConvergenceError(f"{what}: no root in [{lo:.3f}, {hi:.3f}]", reason="no_convergence")
+        fn = f(xn)
+        if xn != x:
+            s_new = (fn - fx) / (xn - x)
+            if s_new != 0.0 and math.isfinite(s_new):
+                slope = s_new
+        x, fx = xn, fn
+        if abs(fx) < tol:
+            return x, fx, slope
+    raise ConvergenceError(f"{what}: no convergence in {MAX_ITER} iterations (residual {fx:.3g})",
+                           reason="no_convergence")
+
+
+# --------------------------------------------------------------------------------------------------
+# solve one point
+# --------------------------------------------------------------------------------------------------
+def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = None,
+          fluid: Fluid | None = None) -> CycleResult:
+    """Solve one operating point.
+
+    Parameters
+    ----------
+    inp : CycleInputs
+        Water temperatures [K], flows [m^3/s], p_m set point [Pa absolute].
+    params : PlantParams
+    guess : CycleResult, optional
+        A nearby solution (the previous minute) for a warm start.
+
+    Raises
+    ------
+    InfeasibleOperation
+        Solved, but the LS compressor would run outside its speed range (``result`` attached),
+        or the inputs cannot be operated (source not cooled, set point below p_e, ...).
+    ConvergenceError
+        No solution found; the message says why.
+    """
+    fluid = fluid or get_fluid(params.fluid, params.backend)
+    try:
+        return _solve(inp, params, guess, fluid)
+    except PropertyError as exc:
+        raise ConvergenceError(f"property evaluation failed: {exc}", reason="property_error") from exc
+    except ValueError as exc:   # compressor curve outside its valid shape
+        raise ConvergenceError(str(exc), reason="compressor_curve") from exc
+    except ZeroDivisionError as exc:
+        raise ConvergenceError(f"degenerate state: {exc}", reason="no_convergence") from exc
+
+
+def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, fluid: Fluid) -> CycleResult:
+    pt = _Point(inp, params, fluid, guess)
+    hs = params.comp_HS
+    if not pt.p_e < inp.p_m_sp:
+        raise InfeasibleOperation(
+            f"p_m set point {inp.p_m_sp / BAR:.3f} bar(a) is not above the evaporating pressure "
+            f"{pt.p_e / BAR:.3f} bar(a)", reason="p_m_sp_below_p_e")
+    if inp.p_m_sp >= fluid.p_crit:
+        raise InfeasibleOperation("p_m set point above the critical pressure", reason="p_m_sp_high")
+    T_m_sp = fluid.sat_p(inp.p_m_sp).T
+    tol_r = ENERGY_TOL
+    T_c_max = fluid.T_crit - 2.0
+    T_c_lo = inp.T_sink_in + 0.05
+
+    slope_c = guess._slope_c if guess else 0.0
+    T_c_guess = [guess.T_c if guess else
+                 inp.T_sink_in + 1.3 * pt.Q_source / pt.C_w + 3.0]
+
+    def solve_Tc(T_m: float) -> float:
+        nonlocal slope_c
+        lo = max(T_c_lo, T_m + 0.05)
+        T_c, _, slope_c = _secant(lambda Tc: pt.evaluate(T_m, Tc)[0], max(T_c_guess[0], lo + 0.5),
+                                  slope_c, tol_r, lo, T_c_max, "condensing temperature")
+        T_c_guess[0] = T_c
+        return T_c
+
+    def n_HS_at(T_m: float) -> float:
+        T_c = solve_Tc(T_m)
+        return pt.evaluate(T_m, T_c)[1]
+
+    n_max, n_min = hs.N_max / hs.N_nom, hs.N_min / hs.N_nom
+    slope_m = guess._slope_m if guess else 0.0
+    # Branch choice. The HS speed needed to hold p_m falls monotonically as p_m rises, so the speed
+    # needed AT the set point decides: within the range -> "sp"; above N_max -> the HS runs at N_max
+    # and p_m floats above the set point; below N_min -> at N_min, p_m floats below.
+    T_m = T_m_sp
+    n_sp = n_HS_at(T_m_sp)
+    if n_sp > n_max + SPEED_TOL:
+        branch, bound, lo, hi = "hs_max", n_max, T_m_sp, T_c_guess[0] - 0.1
+    elif n_sp < n_min - SPEED_TOL:
+        branch, bound, lo, hi = "hs_min", n_min, pt.T_e + 0.05, T_m_sp
+    else:
+        branch = "sp"
+    if branch != "sp":
+        T_m0 = guess.T_m if (guess and guess.branch == branch and lo < guess.T_m < hi) else T_m_sp
+        T_m, _, slope_m = _secant(lambda Tm: n_HS_at(Tm) - bound, T_m0, slope_m, SPEED_TOL,
+                                  lo, hi, f"intermediate pressure at HS speed bound ({branch})")
+
+    T_c = solve_Tc(T_m)
+    s = pt.evaluate(T_m, T_c, full=True)
+    res = _assemble(pt, s, branch, T_m, T_c, slope_c, slope_m)
+    _check_limits(res, params)
+    return res
+
+
+def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c: float,
+              slope_m: float) -> CycleResult:
+    inp, par, fl = pt.inp, pt.par, pt.fl
+    sat_m, sat_c, sat_e = s["sat_m"], s["sat_c"], pt.sat_e
+    m_LS, m_HS = s["m_LS"], s["m_HS"]
+    W_LS = m_LS * (s["h2"] - pt.h1)
+    W_HS = m_HS * (s["h4"] - sat_m.h_g)
+    Q_sink = s["Q_SC"] + s["Q_con"] + s["Q_DSH"]
+    T_sink_out = s["T_w2"] + s["Q_DSH"] / pt.C_w
+    T_SC_out = T_c - s["Q_SC"] / (m_HS * s["cp_l"])
+    T_DSH_out = s["T4"] - s["Q_DSH"] / (m_HS * s["cp_v"])
+    pinch = min(T_SC_out - inp.T_sink_in, T_c - s["T_w1"], T_c - s["T_w2"],
+                T_DSH_out - s["T_w2"], s["T4"] - T_sink_out)
+    p_e, p_m, p_c = sat_e.p, sat_m.p, sat_c.p
+    states = {
+        "eva_out": State(pt.T_e, p_e, sat_e.h_g),
+        "LS_suc": State(pt.T1, p_e, pt.h1),
+        "LS_dis_is": State(s["T2s"], p_m, s["h2s"]),
+        "LS_dis": State(fl.T_ph(p_m, s["h2"]), p_m, s["h2"]),
+        "HS_suc": State(T_m, p_m, sat_m.h_g),
+        "HS_dis_is": State(s["T4s"], p_c, s["h4s"]),
+        "HS_dis": State(fl.T_ph(p_c, s["h4"]), p_c, s["h4"]),
+        "DSH_out": State(fl.T_ph(p_c, s["h_DSH"]) if not s["dsh_condensing"] else T_c, p_c, s["h_DSH"]),
+        "con_out": State(T_c, p_c, sat_c.h_f),
+        "SC_out": State(T_SC_out, p_c, s["h_SC"]),
+        "HS_valve_out": State(T_m, p_m, s["h_SC"]),
+        "IC_liq": State(T_m, p_m, sat_m.h_f),
+        "LS_valve_out": State(pt.T_e, p_e, sat_m.h_f),
+    }
+    return CycleResult(
+        branch=branch, p_e=p_e, p_m=p_m, p_c=p_c, T_e=pt.T_e, T_m=T_m, T_c=T_c,
+        N_LS=s["n_LS"] * par.comp_LS.N_nom, N_HS=s["n_HS"] * par.comp_HS.N_nom,
+        eta_is_LS=s["eta_LS"], eta_is_HS=s["eta_HS"], eta_vol_LS=s["ev_LS"], eta_vol_HS=s["ev_HS"],
+        m_LS=m_LS, m_HS=m_HS, Q_source=pt.Q_source, Q_sink=Q_sink, Q_DSH=s["Q_DSH"],
+        Q_con=s["Q_con"], Q_SC=s["Q_SC"], W_LS=W_LS, W_HS=W_HS, T_sink_out=T_sink_out,
+        T_w_SC_out=s["T_w1"], T_w_con_out=s["T_w2"],
+        dp_source=par.CF_dp_f * par.dp_clean(inp.V_source), superheat=par.superheat,
+        subcooling=T_c - T_SC_out, pinch=pinch, dsh_condensing=s["dsh_condensing"], states=states,
+        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m,
+        _warm={k: getattr(pt, "_g_" + k) for k in ("LS", "HS") if getattr(pt, "_g_" + k, None)})
+
+
+def _check_limits(res: CycleResult, params: PlantParams) -> None:
+    ls = params.comp_LS
+    if res.N_LS > ls.N_max:
+        raise InfeasibleOperation(f"LS compressor speed {res.N_LS:.0f} rpm above its maximum "
+                                  f"{ls.N_max:.0f} rpm", reason="ls_speed_high", result=res)
+    if res.N_LS < ls.N_min:
+        raise InfeasibleOperation(f"LS compressor speed {res.N_LS:.0f} rpm below its minimum "
+                                  f"{ls.N_min:.0f} rpm", reason="ls_speed_low", result=res)
+    if res.pinch < 0.0:
+        raise InfeasibleOperation(f"negative pinch {res.pinch:.3f} K in the condenser unit",
+                                  reason="negative_pinch", result=res)

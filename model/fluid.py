@@ -1,0 +1,182 @@
+"""Refrigerant properties through CoolProp's low-level ``AbstractState`` interface.
+
+One cached AbstractState per fluid and backend; SI in, SI out [K, Pa, J/kg, J/kg/K, kg/m^3].
+
+Measured traps this module avoids (see issue #2):
+- ``PropsSI`` costs ~100 us per call: never used here.
+- A (P,T) flash next to saturation raises in HEOS and is silently wrong with tabular backends:
+  saturated states use (P,Q)/(Q,T); the 1-K superheated suction state uses a (P,T) flash with the
+  gas phase imposed, always on HEOS.
+- A (P,S) flash costs ~80 us in HEOS; the isentropic discharge state is found instead by a 2-D Newton
+  on (rho, T) with analytic derivatives of the Helmholtz EOS (~3 us per step, 2-4 steps warm).
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import CoolProp.CoolProp as CP
+from CoolProp import AbstractState
+
+_BACKENDS = ("HEOS", "BICUBIC&HEOS", "TTSE&HEOS")
+
+
+class PropertyError(RuntimeError):
+    """A property call failed or did not converge (state outside the fluid's valid region)."""
+
+
+@dataclass(frozen=True)
+class SatState:
+    """Saturated liquid and vapour at one pressure."""
+    p: float        # [Pa]
+    T: float        # saturation temperature [K]
+    h_f: float      # saturated liquid enthalpy [J/kg]
+    h_g: float      # saturated vapour enthalpy [J/kg]
+    s_g: float      # saturated vapour entropy [J/kg/K]
+    rho_g: float    # saturated vapour density [kg/m^3]
+
+
+class Fluid:
+    """Property wrapper for one pure fluid. Not thread-safe: use one instance per thread."""
+
+    def __init__(self, name: str = "Ammonia", backend: str = "HEOS"):
+        if backend not in _BACKENDS:
+            raise ValueError(f"property backend {backend!r} is not one of {', '.join(_BACKENDS)}")
+        self.name = name
+        self.backend = backend
+        self._heos = AbstractState("HEOS", name)
+        self._gas = AbstractState("HEOS", name)
+        self._gas.specify_phase(CP.iphase_gas)
+        self._tab = None if backend == "HEOS" else AbstractState(backend, name)
+        self.T_crit = self._heos.T_critical()
+        self.p_crit = self._heos.p_critical()
+        self.T_triple = self._heos.Ttriple()
+        self._sat_cache: dict[tuple[str, float], SatState] = {}
+
+    # ---- saturation -------------------------------------------------------------------------
+    def _sat(self, kind: str, value: float) -> SatState:
+        key = (kind, value)
+        hit = self._sat_cache.get(key)
+        if hit is not None:
+            return hit
+        AS = self._tab or self._heos
+        try:
+            if kind == "T":
+                AS.update(CP.QT_INPUTS, 1.0, value)
+            else:
+                AS.update(CP.PQ_INPUTS, value, 1.0)
+            p, T = AS.p(), AS.T()
+            h_g, s_g, rho_g = AS.hmass(), AS.smass(), AS.rhomass()
+            AS.update(CP.QT_INPUTS, 0.0, T)
+            h_f = AS.hmass()
+        except ValueError as exc:
+            raise PropertyError(f"{self.name} saturation at {kind}={value:.6g}: {exc}") from exc
+        sat = SatState(p=p, T=T, h_f=h_f, h_g=h_g, s_g=s_g, rho_g=rho_g)
+        if len(self._sat_cache) > 4096:
+            self._sat_cache.clear()
+        self._sat_cache[key] = sat
+        return sat
+
+    def sat_T(self, T: float) -> SatState:
+        """Saturation state at temperature T [K]."""
+        if not (self.T_triple < T < self.T_crit):
+            raise PropertyError(f"{self.name}: T={T:.3f} K outside the two-phase range "
+                                f"{self.T_triple:.2f}..{self.T_crit:.2f} K")
+        return self._sat("T", T)
+
+    def sat_p(self, p: float) -> SatState:
+        """Saturation state at pressure p [Pa]."""
+        if not (0.0 < p < self.p_crit):
+            raise PropertyError(f"{self.name}: p={p:.6g} Pa outside the two-phase range")
+        return self._sat("p", p)
+
+    def h_liq_sat(self, T: float) -> float:
+        """Saturated-liquid enthalpy at T [K] (subcooled liquid enthalpy to < 0.1 % here)."""
+        return self.sat_T(T).h_f
+
+    # ---- superheated vapour -----------------------------------------------------------------
+    def vapour_pT(self, p: float, T: float) -> tuple[float, float, float]:
+        """(h, s, rho) of superheated vapour at (p, T). Uses HEOS with the gas phase imposed, which
+        is exact and safe right next to saturation (the LS suction is only 1 K superheated)."""
+        try:
+            self._gas.update(CP.PT_INPUTS, p, T)
+            return self._gas.hmass(), self._gas.smass(), self._gas.rhomass()
+        except ValueError as exc:
+            raise PropertyError(f"{self.name} vapour at p={p:.6g} Pa, T={T:.4f} K: {exc}") from exc
+
+    def isentropic(self, p: float, s: float, guess: tuple[float, float] | None = None
+                   ) -> tuple[float, float, float]:
+        """(h, T, rho) of superheated vapour at pressure p [Pa] and entropy s [J/kg/K].
+
+        ``guess`` is (rho, T) of a nearby solution (warm start). With a tabular backend the (P,S)
+        table lookup is used directly (far from saturation, where tables are accurate).
+        """
+        if self._tab is not None:
+            try:
+                self._tab.update(CP.PSmass_INPUTS, p, s)
+                return self._tab.hmass(), self._tab.T(), self._tab.rhomass()
+            except ValueError as exc:
+                raise PropertyError(f"{self.name} (p={p:.6g}, s={s:.6g}): {exc}") from exc
+        AS = self._gas
+        if guess is None:
+            # ideal-gas estimate from the saturated vapour at p: start hot enough to be superheated
+            sat = self.sat_p(p) if p < self.p_crit else None
+            T = (sat.T + 40.0) if sat else 450.0
+            rho = p / (488.2 * T)       # R_specific of ammonia = 8.314/0.017031
+        else:
+            rho, T = guess
+        for _ in range(30):
+            try:
+                AS.update(CP.DmassT_INPUTS, rho, T)
+                f1 = AS.p() - p
+                f2 = AS.smass() - s
+                a = AS.first_partial_deriv(CP.iP, CP.iDmass, CP.iT)
+                b = AS.first_partial_deriv(CP.iP, CP.iT, CP.iDmass)
+                c = AS.first_partial_deriv(CP.iSmass, CP.iDmass, CP.iT)
+                d = AS.first_partial_deriv(CP.iSmass, CP.iT, CP.iDmass)
+            except ValueError as exc:
+                raise PropertyError(f"{self.name} isentropic state p={p:.6g}, s={s:.6g}: {exc}") from exc
+            det = a * d - b * c
+            if det == 0.0 or not math.isfinite(det):
+                break
+            d_rho = (f1 * d - b * f2) / det
+            d_T = (a * f2 - c * f1) / det
+            # damp steps that would leave the physical domain
+            lam = 1.0
+            while rho - lam * d_rho <= 0.0 or abs(lam * d_T) > 0.3 * T:
+                lam *= 0.5
+            rho -= lam * d_rho
+            T -= lam * d_T
+            if abs(d_T) < 1e-9 * T and abs(f1) < 1e-9 * p:
+                AS.update(CP.DmassT_INPUTS, rho, T)
+                return AS.hmass(), T, rho
+        # Newton failed (should not happen in the superheated region): fall back to the slow flash
+        try:
+            self._heos.update(CP.PSmass_INPUTS, p, s)
+            return self._heos.hmass(), self._heos.T(), self._heos.rhomass()
+        except ValueError as exc:
+            raise PropertyError(f"{self.name} isentropic state p={p:.6g}, s={s:.6g}: {exc}") from exc
+
+    def T_ph(self, p: float, h: float) -> float:
+        """Temperature [K] from pressure [Pa] and enthalpy [J/kg] (for reporting states)."""
+        try:
+            self._heos.update(CP.HmassP_INPUTS, h, p)
+            return self._heos.T()
+        except ValueError as exc:
+            raise PropertyError(f"{self.name} (p={p:.6g}, h={h:.6g}): {exc}") from exc
+
+
+_LOCAL = threading.local()
+
+
+def get_fluid(name: str = "Ammonia", backend: str = "HEOS") -> Fluid:
+    """The Fluid for (name, backend) of the calling thread (AbstractState is not thread-safe)."""
+    cache = getattr(_LOCAL, "fluids", None)
+    if cache is None:
+        cache = _LOCAL.fluids = {}
+    key = (name, backend)
+    f = cache.get(key)
+    if f is None:
+        f = cache[key] = Fluid(name, backend)
+    return f

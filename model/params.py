@@ -1,0 +1,232 @@
+"""Plant parameters and cycle inputs (SI units) and their construction from a config dict.
+
+``model/`` never reads YAML: the caller parses config/plant.yaml and passes the dict to
+``PlantParams.from_dict``; errors name the key path so the caller can name the file.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .units import BAR, DEFAULT_AMBIENT_BAR, M3H
+
+POLY_BASIS = ("1", "pi", "n", "pi^2", "pi*n", "n^2")   # n = N / nominal_speed_rpm
+
+
+class ParamError(ValueError):
+    """A parameter dict is incomplete or invalid; the message names the key path."""
+
+
+def poly_basis(pi: float, n: float) -> tuple[float, ...]:
+    return (1.0, pi, n, pi * pi, pi * n, n * n)
+
+
+@dataclass(frozen=True)
+class Compressor:
+    """Variable-speed reciprocating compressor.
+
+    swept_volume : swept volume flow at the nominal speed [m^3/s]
+    N_nom, N_min, N_max : nominal, lowest and highest speed [rpm]
+    eta_is, eta_vol : 6 coefficients each on POLY_BASIS (pressure ratio pi, n = N/N_nom) [-]
+    """
+    swept_volume: float
+    N_nom: float
+    N_min: float
+    N_max: float
+    eta_is: tuple[float, ...]
+    eta_vol: tuple[float, ...]
+
+    def eta_is_at(self, pi: float, n: float) -> float:
+        c = self.eta_is
+        return c[0] + c[1] * pi + c[2] * n + c[3] * pi * pi + c[4] * pi * n + c[5] * n * n
+
+    def eta_vol_at(self, pi: float, n: float) -> float:
+        c = self.eta_vol
+        return c[0] + c[1] * pi + c[2] * n + c[3] * pi * pi + c[4] * pi * n + c[5] * n * n
+
+    def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
+        """Speed ratio n = N/N_nom at which the compressor moves mass flow m [kg/s] with suction
+        density rho_suc [kg/m^3] at pressure ratio pi; returns (n, eta_vol).
+
+        Solves phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume), a cubic in n, by Newton.
+        Outside the speed range phi is continued linearly with its slope at the bound, so that the
+        speed the flow would need is still defined (and monotone) when it lies beyond the limits;
+        callers decide what an out-of-range speed means.
+        """
+        c = self.eta_vol
+        a0 = c[0] + c[1] * pi + c[3] * pi * pi      # eta_vol = a0 + a1 n + a2 n^2
+        a1 = c[2] + c[4] * pi
+        a2 = c[5]
+        target = m / (rho_suc * self.swept_volume)
+        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
+
+        def phi(n: float) -> tuple[float, float]:
+            return (a0 + n * (a1 + n * a2)) * n, a0 + n * (2.0 * a1 + 3.0 * n * a2)
+
+        for edge in (n_lo, n_hi):
+            if phi(edge)[1] <= 0.0:
+                raise ValueError(f"volumetric-efficiency curve gives a flow that does not rise with "
+                                 f"speed at pressure ratio {pi:.3f}, n={edge:.3f}")
+        f_hi, d_hi = phi(n_hi)
+        if target > f_hi:
+            n = n_hi + (target - f_hi) / d_hi
+            return n, target / n
+        f_lo, d_lo = phi(n_lo)
+        if target < f_lo:
+            n = n_lo + (target - f_lo) / d_lo
+            if n <= 0.0:
+                raise ValueError(f"flow {m:.4g} kg/s is too small for the compressor curve")
+            return n, target / n
+        n = min(max(n0, n_lo), n_hi)
+        for _ in range(50):
+            f, df = phi(n)
+            if df <= 0.0:
+                raise ValueError(f"volumetric-efficiency curve gives a flow that does not rise with "
+                                 f"speed at pressure ratio {pi:.3f}, n={n:.3f}")
+            step = (f - target) / df
+            n = min(max(n - step, n_lo), n_hi)
+            if abs(step) < 1e-13:
+                break
+        return n, a0 + n * (a1 + n * a2)
+
+    def replace(self, **kw) -> "Compressor":
+        return dataclasses.replace(self, **kw)
+
+
+@dataclass(frozen=True)
+class PlantParams:
+    """Design data of SPEC §2 plus calibration parameters, SI units."""
+    fluid: str
+    backend: str
+    ambient_pressure: float            # [Pa]
+    cp_w: float                        # water heat capacity [J/kg/K]
+    rho_w: float                       # water density [kg/m^3]
+    U_eva: float                       # [W/m^2/K]
+    A_eva: float                       # [m^2]
+    superheat: float                   # LS suction superheat [K]
+    U_DSH: float
+    A_DSH: float
+    U_con: float
+    A_con: float
+    U_SC: float
+    A_SC: float
+    design_pinch: float                # [K], reported, not imposed
+    comp_LS: Compressor
+    comp_HS: Compressor
+    dp_clean_coef: tuple[float, float, float]   # dp_clean = c0 + c1 V + c2 V^2, V [m^3/s], dp [Pa]
+    CF_DSH: float = 1.0
+    CF_con: float = 1.0
+    CF_SC: float = 1.0
+    CF_eva: float = 1.0
+    R_th_f: float = 0.0                # evaporator fouling resistance [K/W]
+    CF_dp_f: float = 1.0
+    extra: dict = field(default_factory=dict, compare=False, hash=False)  # calibration settings etc.
+
+    def replace(self, **kw) -> "PlantParams":
+        return dataclasses.replace(self, **kw)
+
+    # derived conductances [W/K]
+    @property
+    def UA_eva_clean(self) -> float:
+        return self.CF_eva * self.U_eva * self.A_eva
+
+    @property
+    def UA_eva(self) -> float:
+        return 1.0 / (1.0 / self.UA_eva_clean + self.R_th_f)
+
+    def dp_clean(self, V_source):
+        c0, c1, c2 = self.dp_clean_coef
+        return c0 + c1 * V_source + c2 * V_source * V_source
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PlantParams":
+        """Build from the plant.yaml dict (units in the key names: bar, m3/h, kJ, K/kW, ...)."""
+        def get(path: str):
+            node = d
+            for part in path.split("."):
+                if not isinstance(node, dict) or part not in node:
+                    raise ParamError(f"missing key '{path}'")
+                node = node[part]
+            return node
+
+        def num(path: str, positive: bool = True) -> float:
+            v = get(path)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ParamError(f"key '{path}': expected a number, got {v!r}")
+            if positive and v <= 0:
+                raise ParamError(f"key '{path}': must be > 0, got {v!r}")
+            return float(v)
+
+        def coeffs(path: str) -> tuple[float, ...]:
+            v = get(path)
+            if (not isinstance(v, (list, tuple)) or len(v) != len(POLY_BASIS)
+                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+                raise ParamError(f"key '{path}': expected {len(POLY_BASIS)} numbers on the basis "
+                                 f"{', '.join(POLY_BASIS)}, got {v!r}")
+            return tuple(float(x) for x in v)
+
+        def compressor(name: str) -> Compressor:
+            base = f"compressors.{name}"
+            N_nom = num(f"{base}.nominal_speed_rpm")
+            comp = Compressor(
+                swept_volume=num(f"{base}.swept_volume_m3_per_h") * M3H,
+                N_nom=N_nom, N_min=num(f"{base}.speed_min_rpm"), N_max=num(f"{base}.speed_max_rpm"),
+                eta_is=coeffs(f"{base}.eta_is"), eta_vol=coeffs(f"{base}.eta_vol"))
+            if comp.N_min >= comp.N_max:
+                raise ParamError(f"key '{base}.speed_min_rpm': must be below speed_max_rpm")
+            return comp
+
+        dp = get("source_pressure_drop.dp_clean_coef")
+        if not (isinstance(dp, (list, tuple)) and len(dp) == 3
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dp)):
+            raise ParamError("key 'source_pressure_drop.dp_clean_coef': expected 3 numbers "
+                             "[bar, bar/(m3/h), bar/(m3/h)^2]")
+        # config: dp [bar] with V [m3/h]  ->  SI: dp [Pa] with V [m3/s]
+        dp_si = (dp[0] * BAR, dp[1] * BAR / M3H, dp[2] * BAR / M3H ** 2)
+        cal = d.get("calibrated", {}) or {}
+
+        def calnum(key: str, default: float) -> float:
+            v = cal.get(key, default)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+                raise ParamError(f"key 'calibrated.{key}': expected a number >= 0, got {v!r}")
+            return float(v)
+
+        backend = d.get("property_backend", "HEOS")
+        return cls(
+            fluid=str(d.get("fluid", "Ammonia")), backend=str(backend),
+            ambient_pressure=float(d.get("ambient_pressure_bar", DEFAULT_AMBIENT_BAR)) * BAR,
+            cp_w=num("water.cp_kJ_per_kgK") * 1e3, rho_w=num("water.rho_kg_per_m3"),
+            U_eva=num("evaporator.U_W_per_m2K"), A_eva=num("evaporator.A_m2"),
+            superheat=num("evaporator.superheat_K"),
+            U_DSH=num("desuperheater.U_W_per_m2K"), A_DSH=num("desuperheater.A_m2"),
+            U_con=num("condenser.U_W_per_m2K"), A_con=num("condenser.A_m2"),
+            design_pinch=num("condenser.design_pinch_K"),
+            U_SC=num("subcooler.U_W_per_m2K"), A_SC=num("subcooler.A_m2"),
+            comp_LS=compressor("LS"), comp_HS=compressor("HS"),
+            dp_clean_coef=dp_si,
+            CF_DSH=calnum("CF_DSH", 1.0), CF_con=calnum("CF_con", 1.0), CF_SC=calnum("CF_SC", 1.0),
+            CF_eva=calnum("CF_eva", 1.0), R_th_f=calnum("R_th_f_K_per_kW", 0.0) * 1e-3,
+            CF_dp_f=calnum("CF_dp_f", 1.0),
+            extra={k: v for k, v in d.items() if k in ("calibration", "optimization", "surrogate")},
+        )
+
+
+@dataclass(frozen=True)
+class CycleInputs:
+    """One quasi-steady operating point (one-minute average), SI units.
+
+    T_source_in, T_source_out, T_sink_in : water temperatures [K]
+    V_source, V_sink : water volume flows [m^3/s]
+    p_m_sp : intermediate-pressure set point, absolute [Pa]
+    """
+    T_source_in: float
+    T_source_out: float
+    T_sink_in: float
+    V_source: float
+    V_sink: float
+    p_m_sp: float
+
+    def replace(self, **kw) -> "CycleInputs":
+        return dataclasses.replace(self, **kw)

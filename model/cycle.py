@@ -396,7 +396,7 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
         raise InfeasibleOperation("p_m set point above the critical pressure", reason="p_m_sp_high")
     T_m_sp = fluid.sat_p(inp.p_m_sp).T
     tol_r = ENERGY_TOL
-    T_c_max = fluid.T_crit - 2.0
+    T_c_max = fluid.sat_p(min(params.p_c_max, fluid.p_crit * 0.98)).T
     T_c_lo = inp.T_sink_in + 0.05
 
     slope_c = guess._slope_c if guess else 0.0
@@ -406,8 +406,16 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
     def solve_Tc(T_m: float) -> float:
         nonlocal slope_c
         lo = max(T_c_lo, T_m + 0.05)
-        T_c, _, slope_c = _secant(lambda Tc: pt.evaluate(T_m, Tc)[0], max(T_c_guess[0], lo + 0.5),
-                                  slope_c, tol_r, lo, T_c_max, "condensing temperature")
+        f = lambda Tc: pt.evaluate(T_m, Tc)[0]  # noqa: E731
+        try:
+            T_c, _, slope_c = _secant(f, min(max(T_c_guess[0], lo + 0.5), T_c_max), slope_c, tol_r,
+                                      lo, T_c_max, "condensing temperature")
+        except ConvergenceError:
+            if f(T_c_max) < 0.0:   # even at the design pressure the condenser cannot reject the duty
+                raise InfeasibleOperation(
+                    f"the sink cannot take the heat: condensing pressure would exceed the design "
+                    f"limit {params.p_c_max / BAR:.1f} bar(a)", reason="p_c_high") from None
+            raise
         T_c_guess[0] = T_c
         return T_c
 

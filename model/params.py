@@ -113,6 +113,7 @@ class PlantParams:
     U_SC: float
     A_SC: float
     design_pinch: float                # [K], reported, not imposed
+    p_c_max: float                     # condenser design pressure [Pa abs]: above it, infeasible
     comp_LS: Compressor
     comp_HS: Compressor
     dp_clean_coef: tuple[float, float, float]   # dp_clean = c0 + c1 V + c2 V^2, V [m^3/s], dp [Pa]
@@ -203,6 +204,7 @@ class PlantParams:
             U_DSH=num("desuperheater.U_W_per_m2K"), A_DSH=num("desuperheater.A_m2"),
             U_con=num("condenser.U_W_per_m2K"), A_con=num("condenser.A_m2"),
             design_pinch=num("condenser.design_pinch_K"),
+            p_c_max=num("condenser.design_pressure_bar_a") * BAR,
             U_SC=num("subcooler.U_W_per_m2K"), A_SC=num("subcooler.A_m2"),
             comp_LS=compressor("LS"), comp_HS=compressor("HS"),
             dp_clean_coef=dp_si,

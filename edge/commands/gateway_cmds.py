@@ -1,6 +1,285 @@
-"""Sub-commands (see edge/cli.py). Keep heavy imports inside the command functions."""
+"""Gateway sub-commands: check-config, read (run and demo join later, one function each).
+
+Heavy imports (pymodbus via edge.plc) happen inside the command functions.
+"""
 from __future__ import annotations
+
+import argparse
+import sys
+
+from edge.config import DEFAULT_CONFIG
+
+# What each status bit means (SPEC 7.3); docs/registers.md is rendered from the YAML plus this.
+STATUS_BIT_NOTES = {
+    "data_stale": "no fresh data: read failures, stale tags, or a frozen life counter",
+    "heat_pump_off": "running flag 0 (or the heat pump is inferred to be off)",
+    "cip_detected": "cleaning-in-place in progress",
+    "calibration_failed": "the last fouling calibration failed, or none has run yet",
+    "model_infeasible": "set-point optimization / model could not solve the window",
+    "comm_fault": "Modbus communication fault on the last poll",
+    "advice_stale": "advice values are from an earlier cycle (see advice_age_s)",
+}
 
 
 def register(sub) -> None:
     """Add this module's sub-commands to the argparse sub-parsers."""
+    p = sub.add_parser("check-config", help="validate the configuration and print the layout",
+                       description="Validate gateway.yaml, tags.yaml and plant.yaml without "
+                       "touching the network; print tags, planned reads and the advisory block.")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--markdown", action="store_true",
+                   help="print the register map as Markdown (the source of docs/registers.md)")
+    p.set_defaults(func=cmd_check_config)
+
+    p = sub.add_parser("read", help="read the advisory block once, as the HMI sees it",
+                       description="Connect to any Modbus TCP server, read the advisory block "
+                       "once and print it decoded (status bits by name).")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--host", help="override plc.host")
+    p.add_argument("--port", type=int, help="override plc.port")
+    p.add_argument("--device-id", type=int, help="override plc.device_id")
+    p.add_argument("--timeout", type=float, default=3.0,
+                   help="give up after this many seconds in total (default: %(default)s)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=cmd_read)
+
+
+# ------------------------------------------------------------------------------ check-config
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    from edge.config import ConfigError, load_config
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        print(f"{len(exc.problems)} problem(s); nothing was started.", file=sys.stderr)
+        return 2
+    print(render_markdown(cfg) if args.markdown else render_layout(cfg), end="")
+    return 0
+
+
+def _read_plan(cfg):
+    from edge.codec import plan_reads
+
+    for space in ("input", "holding"):
+        tags = [t for t in cfg.tags if t.register == space]
+        if tags:
+            for req in plan_reads(tags):
+                yield space, req
+
+
+def _num(x) -> str:
+    from edge.codec import format_number
+
+    return "" if x is None else format_number(x)
+
+
+def _range(t) -> str:
+    return f"[{_num(t.range[0])}, {_num(t.range[1])}]"
+
+
+def _order(type_: str, byte_order: str) -> str:
+    return byte_order if type_ in ("int32", "uint32", "float32") else "AB"
+
+
+def _ref(space: str, address: int) -> str:
+    """Modicon-style 1-based reference (3xxxx input, 4xxxx holding) that many HMIs use."""
+    prefix = {"input": 3, "holding": 4}[space]
+    return f"{prefix}{address + 1:04d}" if address < 9999 else f"{prefix}{address + 1:05d}"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) if rows else len(h)
+              for i, h in enumerate(header)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip()
+             for row in [header, *rows]]
+    return "\n".join("  " + ln for ln in lines) + "\n"
+
+
+def render_layout(cfg) -> str:
+    """Human-readable layout printed by check-config."""
+    adv = cfg.advisory
+    out = [f"OK: {cfg.path}\n",
+           f"  tags: {cfg.tags_file}\n  plant: {cfg.plant_file}\n",
+           f"  PLC {cfg.plc.host}:{cfg.plc.port} device {cfg.plc.device_id}; timeout "
+           f"{cfg.plc.timeout_s:g} s per request; reconnect {cfg.plc.reconnect_min_s:g}.."
+           f"{cfg.plc.reconnect_max_s:g} s; scan every {cfg.scan_interval_s:g} s\n",
+           f"\nTags ({len(cfg.tags)})\n"]
+    rows = [[t.name, t.register, str(t.address), t.type, _order(t.type, t.byte_order),
+             _num(t.scale), _num(t.offset), t.unit, _range(t), _num(t.sentinel),
+             t.pressure or ""] for t in cfg.tags]
+    out.append(_table(["name", "space", "addr", "type", "order", "scale", "offset", "unit",
+                       "range", "sentinel", "pressure"], rows))
+    plan = list(_read_plan(cfg))
+    out.append(f"\nRead plan ({len(plan)} request(s) per scan)\n")
+    for space, req in plan:
+        fc = 4 if space == "input" else 3
+        out.append(f"  FC{fc} {space} {req.start}..{req.start + req.count - 1} "
+                   f"({req.count} registers): {', '.join(t.name for t in req.tags)}\n")
+    out.append(f"\nAdvisory block: {adv.register} {adv.start}..{adv.end - 1} ({adv.size} "
+               f"registers, 32-bit order {adv.byte_order}), written in one FC16 request\n")
+    rows = [[f"{adv.start + f.offset}" + (f"..{adv.start + f.offset + 1}" if f.count == 2 else ""),
+             str(f.offset), f.name, f.type, f.unit, f.description] for f in adv.fields]
+    out.append(_table(["address", "offset", "field", "type", "unit", "description"], rows))
+    status = adv.field("status")
+    out.append(f"\nStatus bits (register {adv.start + status.offset})\n")
+    out.append(_table(["bit", "mask", "name"],
+                      [[str(b), f"0x{1 << b:04X}", n] for b, n in adv.status_bits]))
+    return "".join(out)
+
+
+def render_markdown(cfg) -> str:
+    """The register map for the HMI engineer (docs/registers.md is this output, verbatim)."""
+    adv = cfg.advisory
+    md = ["# hp-edge register map\n\n",
+          f"Generated by `hp-edge check-config --markdown` from `{cfg.path.name}` and "
+          f"`{cfg.tags_file.name}`; do not edit by hand (a test compares this file with the "
+          f"YAML).\n\n",
+          "Addresses are 0-based PDU addresses as sent on the wire. *Ref* is the 1-based "
+          "Modicon reference (3xxxx input register, 4xxxx holding register) many HMIs use. "
+          "16-bit values are big-endian (AB). 32-bit values take two registers; the byte order "
+          "names the order in which the value's big-endian bytes A B C D travel: ABCD = high word "
+          "first, CDAB = low word first, BADC / DCBA = the same with the bytes of each word "
+          "swapped. Engineering value = raw × scale + offset.\n\n",
+          "## Tags read from the PLC\n\n",
+          "A value outside its plausible range, NaN/inf or equal to its sentinel is marked bad "
+          "(never clamped); a tag not read successfully for `max_age_s` is stale.\n\n"]
+    for space, fc in (("input", 4), ("holding", 3)):
+        tags = [t for t in cfg.tags if t.register == space]
+        if not tags:
+            continue
+        md.append(f"### {space.capitalize()} registers (FC{fc})\n\n")
+        md.append("| address | ref | tag | type | order | scale | offset | unit | range | "
+                  "max age s | sentinel | pressure |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+        for t in tags:
+            addr = f"{t.address}" + (f"–{t.end - 1}" if t.count == 2 else "")
+            ref = _ref(space, t.address) + (f"–{_ref(space, t.end - 1)}" if t.count == 2 else "")
+            md.append(f"| {addr} | {ref} | `{t.name}` | {t.type} | "
+                      f"{_order(t.type, t.byte_order)} | {_num(t.scale)} | {_num(t.offset)} | "
+                      f"{t.unit} | {_range(t)} | {_num(t.max_age_s)} | {_num(t.sentinel)} | "
+                      f"{t.pressure or ''} |\n")
+        md.append("\n")
+    md.append("### Grouped reads per scan\n\n| function | registers | tags |\n|---|---|---|\n")
+    for space, req in _read_plan(cfg):
+        md.append(f"| FC{4 if space == 'input' else 3} {space} | {req.start}–"
+                  f"{req.start + req.count - 1} | {', '.join(t.name for t in req.tags)} |\n")
+    md.append(f"\nIf a grouped read spanning unused registers is refused with exception 2, the "
+              f"gateway reads that group tag by tag from then on.\n\n")
+    md.append(f"## Advisory block (written by the gateway, read by the HMI)\n\n"
+              f"{adv.register.capitalize()} registers {adv.start}–{adv.end - 1} "
+              f"({adv.size} registers), written as a whole in one FC16 request per cycle. "
+              f"32-bit fields use byte order {adv.byte_order}. The gateway writes no other "
+              f"register. Words not listed are written as 0. A float32 field without a value "
+              f"holds NaN.\n\n")
+    md.append("| address | ref | offset | field | type | unit | description |\n"
+              "|---|---|---|---|---|---|---|\n")
+    for f in adv.fields:
+        a = adv.start + f.offset
+        addr = f"{a}" + (f"–{a + 1}" if f.count == 2 else "")
+        ref = _ref(adv.register, a) + (f"–{_ref(adv.register, a + 1)}" if f.count == 2 else "")
+        md.append(f"| {addr} | {ref} | {f.offset} | `{f.name}` | {f.type} | "
+                  f"{f.unit} | {f.description} |\n")
+    used = {f.offset + i for f in adv.fields for i in range(f.count)}
+    unused = [adv.start + o for o in range(adv.size) if o not in used]
+    if unused:
+        md.append(f"\nUnused (written as 0): {', '.join(map(str, unused))}.\n")
+    status = adv.field("status")
+    md.append(f"\n### Status bits (register {adv.start + status.offset}, `status`; bit 0 = least "
+              f"significant)\n\n| bit | mask | name | meaning |\n|---|---|---|---|\n")
+    for bit, name in adv.status_bits:
+        md.append(f"| {bit} | 0x{1 << bit:04X} | `{name}` | {STATUS_BIT_NOTES.get(name, '')} |\n")
+    return "".join(md)
+
+
+# ------------------------------------------------------------------------------------- read
+
+
+def cmd_read(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from edge.config import ConfigError, load_config
+
+    try:
+        cfg = load_config(args.config, load_plant=False)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return 2
+    # pymodbus logs each failed connect as a warning of its own; we report the outcome once.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                   ("device_id", args.device_id)) if v is not None}
+    if args.timeout <= 0:
+        print("--timeout must be > 0", file=sys.stderr)
+        return 2
+    return asyncio.run(_read(cfg, overrides, args.timeout, args.json))
+
+
+async def _read(cfg, overrides: dict, timeout: float, as_json: bool) -> int:
+    import asyncio
+
+    from edge.advisory import decode_advisory
+    from edge.plc import PlcClient, PlcError
+
+    plc = PlcClient.from_config(cfg, **overrides)
+    target = f"{plc.plc.host}:{plc.plc.port} device {plc.plc.device_id}"
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    try:
+        await plc.connect(timeout)
+        words = await plc.read_advisory(max(0.05, deadline - loop.time()))
+    except PlcError as exc:
+        print(f"hp-edge read: cannot read the advisory block from {target}: {exc}",
+              file=sys.stderr)
+        return 1
+    finally:
+        await plc.close()
+    decoded = decode_advisory(cfg.advisory, words)
+    print(_format_json(cfg, target, words, decoded) if as_json
+          else _format_text(cfg, target, decoded), end="")
+    return 0
+
+
+def _format_json(cfg, target: str, words: list[int], decoded: dict) -> str:
+    import json
+    import math
+
+    def clean(v):
+        return None if isinstance(v, float) and not math.isfinite(v) else v
+
+    adv = cfg.advisory
+    doc = {"server": target, "register": adv.register, "start": adv.start, "size": adv.size,
+           "words": words, "fields": {f.name: clean(decoded[f.name]) for f in adv.fields},
+           "status_bits": decoded["status_bits"]}
+    return json.dumps(doc, indent=2) + "\n"
+
+
+def _format_text(cfg, target: str, decoded: dict) -> str:
+    import math
+    from datetime import datetime, timezone
+
+    adv = cfg.advisory
+    rows = []
+    for f in adv.fields:
+        v = decoded[f.name]
+        if f.name == "status":
+            shown = f"0x{v:04X}"
+        elif isinstance(v, float):
+            shown = "NaN (no value)" if math.isnan(v) else f"{v:.6g}"
+        else:
+            shown = str(v)
+        if f.name == "last_update" and v:
+            shown += "  (" + datetime.fromtimestamp(v, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ") + ")"
+        rows.append([str(adv.start + f.offset), f.name, shown, f.unit])
+    out = [f"advisory block {adv.register} {adv.start}..{adv.end - 1} from {target}\n",
+           _table(["address", "field", "value", "unit"], rows), "status bits:\n"]
+    set_bits = set(decoded["status_bits"])
+    for bit, name in adv.status_bits:
+        out.append(f"  [{'x' if name in set_bits else ' '}] {bit:2d} {name}\n")
+    for extra in sorted(set_bits - {n for _, n in adv.status_bits}):
+        out.append(f"  [x]    {extra} (not configured)\n")
+    return "".join(out)

@@ -1,0 +1,351 @@
+"""Configuration loading and validation: exact messages, all problems at once, no rewriting."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+import socket
+from pathlib import Path
+
+import pytest
+import yaml
+
+from edge.commands import gateway_cmds
+from edge.config import ConfigError, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT = REPO / "config" / "gateway.yaml"
+TOP_KEYS = ("plc, tags_file, plant_file, ambient_pressure_bar, scan_interval_s, aggregate_s, "
+            "calibration_interval_s, calibration_window_h, min_window_samples, optimizer, "
+            "life_counter_tag, state_dir, history_db, history_retention_days, advisory")
+TAG_KEYS = ("register, address, type, byte_order, scale, offset, unit, range, max_age_s, "
+            "sentinel, pressure")
+
+
+# -------------------------------------------------------------------------- default config
+
+def test_default_config_loads():
+    cfg = load_config(DEFAULT, load_plant=False)
+    assert len(cfg.tags) == 27
+    assert [t.name for t in cfg.tags][:3] == ["T_sink_in", "T_sink_out", "T_source_in"]
+    p = cfg.tag("p_suc_LS")
+    assert (p.register, p.address, p.type, p.byte_order, p.pressure) == ("input", 16, "float32", "CDAB", "gauge")
+    t = cfg.tag("T_sink_in")
+    assert (t.scale, t.offset, t.range, t.sentinel, t.byte_order) == (0.01, 0.0, (0.0, 90.0), -32768, "ABCD")
+    assert cfg.plc.host == "127.0.0.1" and cfg.plc.port == 5020 and cfg.plc.device_id == 1
+    adv = cfg.advisory
+    assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 32, "ABCD")
+    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 30, 2))
+    assert adv.field("last_update").type == "uint32"
+    assert dict(adv.status_bits)[5] == "comm_fault"
+    assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "model"
+    assert cfg.plant is None                       # not loaded when load_plant=False
+
+
+def test_paths_resolve_relative_to_the_gateway_file(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)                    # nowhere near the config
+    cfg = load_config(DEFAULT, load_plant=False)
+    assert cfg.tags_file == REPO / "config" / "tags.yaml"
+    assert cfg.state_dir == REPO / "var" / "state"
+    assert cfg.history_db == REPO / "var" / "history.sqlite"
+
+
+@pytest.mark.skipif(not (REPO / "config" / "plant.yaml").exists(), reason="plant.yaml not there yet")
+def test_default_config_with_plant():
+    cfg = load_config(DEFAULT)
+    assert isinstance(cfg.plant, dict) and cfg.plant
+
+
+def test_config_is_frozen():
+    cfg = load_config(DEFAULT, load_plant=False)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.tags[0].address = 5
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.plc.port = 1
+
+
+# ---------------------------------------------------------------- edited copies in tmp_path
+
+@pytest.fixture
+def cfgdir(tmp_path, monkeypatch):
+    """A copy of the default config in tmp_path/config, cwd = tmp_path (messages then read
+    'config/tags.yaml: ...'), and a tiny plant.yaml so these tests do not depend on its content."""
+    d = tmp_path / "config"
+    d.mkdir()
+    shutil.copy(REPO / "config" / "gateway.yaml", d)
+    shutil.copy(REPO / "config" / "tags.yaml", d)
+    (d / "plant.yaml").write_text("fluid: R717\n")
+    monkeypatch.chdir(tmp_path)
+    return d
+
+
+def edit(d: Path, name: str, change) -> None:
+    path = d / name
+    data = yaml.safe_load(path.read_text())
+    change(data)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def problems(gateway: str = "config/gateway.yaml") -> list[str]:
+    with pytest.raises(ConfigError) as info:
+        load_config(gateway)
+    assert str(info.value) == "\n".join(info.value.problems)
+    return info.value.problems
+
+
+def tag(name):
+    return lambda data: data["tags"][name]
+
+
+CASES = {
+    "bad type": ("tags.yaml", lambda d: d["tags"]["T_sink_in"].update(type="int17"),
+                 ["config/tags.yaml: tag 'T_sink_in': key 'type': 'int17' is not one of "
+                  "int16, uint16, int32, uint32, float32"]),
+    "unknown tag key": ("tags.yaml", lambda d: d["tags"]["p_source_in"].update(byteorder="ABCD"),
+                        ["config/tags.yaml: tag 'p_source_in': key 'byteorder': unknown key "
+                         f"(did you mean 'byte_order'?); allowed: {TAG_KEYS}"]),
+    "missing key": ("tags.yaml", lambda d: d["tags"]["T_c"].pop("unit"),
+                    ["config/tags.yaml: tag 'T_c': key 'unit': missing required key"]),
+    "address as text": ("tags.yaml", lambda d: d["tags"]["T_suc_LS"].update(address="10"),
+                        ["config/tags.yaml: tag 'T_suc_LS': key 'address': expected an integer, got '10'"]),
+    "address as bool": ("tags.yaml", lambda d: d["tags"]["T_suc_LS"].update(address=True),
+                        ["config/tags.yaml: tag 'T_suc_LS': key 'address': expected an integer, got True"]),
+    "address too big": ("tags.yaml", lambda d: d["tags"]["W_HS"].update(address=65535),
+                        ["config/tags.yaml: tag 'W_HS': key 'address': float32 at 65535 runs past register 65535"]),
+    "bad byte order": ("tags.yaml", lambda d: d["tags"]["p_suc_LS"].update(byte_order="CDBA"),
+                       ["config/tags.yaml: tag 'p_suc_LS': key 'byte_order': 'CDBA' is not one of "
+                        "ABCD, CDAB, BADC, DCBA"]),
+    "byte order on int16": ("tags.yaml", lambda d: d["tags"]["T_e"].update(byte_order="BADC"),
+                            ["config/tags.yaml: tag 'T_e': key 'byte_order': 'BADC' has no effect on "
+                             "16-bit type int16 (16-bit values are always big-endian AB); remove the key"]),
+    "range reversed": ("tags.yaml", lambda d: d["tags"]["T_c"].update(range=[110, 0]),
+                       ["config/tags.yaml: tag 'T_c': key 'range': low 110 must be below high 0"]),
+    "range empty": ("tags.yaml", lambda d: d["tags"]["T_c"].update(range=[5, 5]),
+                    ["config/tags.yaml: tag 'T_c': key 'range': low 5 must be below high 5"]),
+    "range shape": ("tags.yaml", lambda d: d["tags"]["T_c"].update(range=[0, "x"]),
+                    ["config/tags.yaml: tag 'T_c': key 'range': expected [low, high] (two numbers), "
+                     "got [0, 'x']"]),
+    "overlap 32-bit": ("tags.yaml", lambda d: d["tags"]["T_e"].update(address=17),
+                       ["config/tags.yaml: tag 'T_e': key 'address': registers input 17..17 overlap "
+                        "tag 'p_suc_LS' (input 16..17)"]),
+    "overlap floats": ("tags.yaml", lambda d: d["tags"]["p_source_out"].update(address=7),
+                       ["config/tags.yaml: tag 'p_source_out': key 'address': registers input 7..8 "
+                        "overlap tag 'p_source_in' (input 6..7)"]),
+    "sentinel too big": ("tags.yaml", lambda d: d["tags"]["V_sink"].update(sentinel=70000),
+                         ["config/tags.yaml: tag 'V_sink': key 'sentinel': 70000 is not a raw uint16 "
+                          "value (0..65535)"]),
+    "pressure kind missing": ("tags.yaml", lambda d: d["tags"]["p_dis_HS"].pop("pressure"),
+                              ["config/tags.yaml: tag 'p_dis_HS': key 'pressure': required for a "
+                               "pressure tag (unit bar): gauge or absolute"]),
+    "pressure on a temperature": ("tags.yaml", lambda d: d["tags"]["T_c"].update(pressure="gauge"),
+                                  ["config/tags.yaml: tag 'T_c': key 'pressure': only for pressure "
+                                   "units (bar, mbar, Pa, kPa, MPa, psi), unit is 'degC'"]),
+    "scale zero": ("tags.yaml", lambda d: d["tags"]["N_LS"].update(scale=0),
+                   ["config/tags.yaml: tag 'N_LS': key 'scale': must not be 0"]),
+    "max age": ("tags.yaml", lambda d: d["tags"]["N_LS"].update(max_age_s=0),
+                ["config/tags.yaml: tag 'N_LS': key 'max_age_s': must be > 0, got 0"]),
+    "tag name": ("tags.yaml", lambda d: d["tags"].update({"timestamp": d["tags"].pop("cip")}),
+                 ["config/tags.yaml: tag 'timestamp': tag names must be identifiers (letters, "
+                  "digits, _) and not 'timestamp'"]),
+    "advisory field outside": ("gateway.yaml",
+                               lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=32),
+                               ["config/gateway.yaml: advisory field 'advice_age_s': key 'offset': "
+                                "32 is outside the block (size 32)"]),
+    "advisory 32-bit crossing end": ("gateway.yaml",
+                                     lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=31),
+                                     ["config/gateway.yaml: advisory field 'advice_age_s': key 'offset': "
+                                      "uint32 at offset 31 crosses the block's end (needs offsets "
+                                      "31..32, size 32)"]),
+    "advisory fields overlap": ("gateway.yaml",
+                                lambda d: d["advisory"]["fields"]["dCOP_pct"].update(offset=5),
+                                ["config/gateway.yaml: advisory field 'dCOP_pct': key 'offset': "
+                                 "offsets 5..6 overlap field 'p_m_sp_rec' (4..5)"]),
+    "advisory unknown field key": ("gateway.yaml",
+                                   lambda d: d["advisory"]["fields"]["R_th_f"].update(scale=1000),
+                                   ["config/gateway.yaml: advisory field 'R_th_f': key 'scale': unknown "
+                                    "key; allowed: offset, type, unit, description"]),
+    "advisory heartbeat type": ("gateway.yaml",
+                                lambda d: d["advisory"]["fields"]["heartbeat"].update(type="int16"),
+                                ["config/gateway.yaml: advisory field 'heartbeat': key 'type': must be "
+                                 "uint16, got int16"]),
+    "advisory on input registers": ("gateway.yaml", lambda d: d["advisory"].update(register="input"),
+                                    ["config/gateway.yaml: section 'advisory': key 'register': 'input' "
+                                     "registers cannot be written; the block must be holding"]),
+    "advisory too big for FC16": ("gateway.yaml", lambda d: d["advisory"].update(size=124),
+                                  ["config/gateway.yaml: section 'advisory': key 'size': 124 is "
+                                   "outside 1..123"]),
+    "status bit 16": ("gateway.yaml", lambda d: d["advisory"]["status_bits"].update({16: "x"}),
+                      ["config/gateway.yaml: section 'advisory': key 'status_bits': bit 16 is "
+                       "outside 0..15"]),
+    "status bit -1": ("gateway.yaml", lambda d: d["advisory"]["status_bits"].update({-1: "x"}),
+                      ["config/gateway.yaml: section 'advisory': key 'status_bits': bit -1 is "
+                       "outside 0..15"]),
+    "status bit name twice": ("gateway.yaml",
+                              lambda d: d["advisory"]["status_bits"].update({9: "comm_fault"}),
+                              ["config/gateway.yaml: section 'advisory': key 'status_bits': bit 9: "
+                               "name 'comm_fault' already used by bit 5"]),
+    "scan interval zero": ("gateway.yaml", lambda d: d.update(scan_interval_s=0),
+                           ["config/gateway.yaml: top level: key 'scan_interval_s': must be > 0, got 0"]),
+    "scan interval text": ("gateway.yaml", lambda d: d.update(scan_interval_s="5 s"),
+                           ["config/gateway.yaml: top level: key 'scan_interval_s': expected a finite "
+                            "number, got '5 s'"]),
+    "unknown top-level key": ("gateway.yaml", lambda d: d.update(scan_interval=5),
+                              ["config/gateway.yaml: top level: key 'scan_interval': unknown key (did "
+                               f"you mean 'scan_interval_s'?); allowed: {TOP_KEYS}"]),
+    "missing section": ("gateway.yaml", lambda d: d.pop("advisory"),
+                        ["config/gateway.yaml: top level: key 'advisory': missing required key"]),
+    "plc typo": ("gateway.yaml", lambda d: d["plc"].update(hots=d["plc"].pop("host")),
+                 ["config/gateway.yaml: section 'plc': key 'hots': unknown key (did you mean 'host'?); "
+                  "allowed: host, port, device_id, timeout_s, reconnect_min_s, reconnect_max_s",
+                  "config/gateway.yaml: section 'plc': key 'host': missing required key"]),
+    "plc port": ("gateway.yaml", lambda d: d["plc"].update(port=70000),
+                 ["config/gateway.yaml: section 'plc': key 'port': 70000 is outside 1..65535"]),
+    "timeout vs scan": ("gateway.yaml", lambda d: d["plc"].update(timeout_s=5.0),
+                        ["config/gateway.yaml: section 'plc': key 'timeout_s': 5 s per request must be "
+                         "shorter than scan_interval_s (5 s), or one poll cycle could overrun the "
+                         "scan interval"]),
+    "backoff": ("gateway.yaml", lambda d: d["plc"].update(reconnect_max_s=0.5),
+                ["config/gateway.yaml: section 'plc': key 'reconnect_max_s': 0.5 is below "
+                 "reconnect_min_s 1"]),
+    "optimizer": ("gateway.yaml", lambda d: d.update(optimizer="surrogat"),
+                  ["config/gateway.yaml: top level: key 'optimizer': 'surrogat' is not one of model, "
+                   "surrogate"]),
+    "window too small": ("gateway.yaml", lambda d: d.update(min_window_samples=121),
+                         ["config/gateway.yaml: top level: key 'min_window_samples': 121 exceeds the "
+                          "120 samples a 2 h window of 60 s samples can hold; calibration would never run"]),
+    "life counter": ("gateway.yaml", lambda d: d.update(life_counter_tag="life_cnt"),
+                     ["config/gateway.yaml: top level: key 'life_counter_tag': 'life_cnt' is not a tag "
+                      "of config/tags.yaml"]),
+    "tags file missing": ("gateway.yaml", lambda d: d.update(tags_file="tagz.yaml"),
+                          ["config/gateway.yaml: top level: key 'tags_file': file not found: "
+                           "config/tagz.yaml"]),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_exact_error_messages(cfgdir, name):
+    file, change, expected = CASES[name]
+    edit(cfgdir, file, change)
+    assert problems() == expected
+
+
+def test_advisory_block_overlapping_a_tag(cfgdir):
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["life_counter"].update(address=1010))
+    assert problems() == [
+        "config/gateway.yaml: section 'advisory': key 'start': block holding 1000..1031 overlaps "
+        "tag 'life_counter' (holding 1010..1010) of config/tags.yaml"]
+
+
+def test_same_address_in_other_register_space_is_fine(cfgdir):
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["p_m_sp"].update(address=0))   # holding 0 vs input 0
+    assert load_config("config/gateway.yaml").tag("p_m_sp").address == 0
+
+
+def test_all_problems_of_all_files_at_once(cfgdir):
+    def tags(d):
+        d["tags"]["T_sink_in"]["type"] = "int17"
+        d["tags"]["T_source_out"]["address"] = 2      # overlaps T_source_in ...
+        d["tags"]["T_source_out"]["range"] = [50, -5]  # ... and has another problem
+    edit(cfgdir, "tags.yaml", tags)
+    edit(cfgdir, "gateway.yaml", lambda d: d.update(scan_interval_s=-1))
+    assert problems() == [
+        "config/gateway.yaml: top level: key 'scan_interval_s': must be > 0, got -1",
+        "config/tags.yaml: tag 'T_sink_in': key 'type': 'int17' is not one of int16, uint16, "
+        "int32, uint32, float32",
+        "config/tags.yaml: tag 'T_source_out': key 'range': low 50 must be below high -5",
+        "config/tags.yaml: tag 'T_source_out': key 'address': registers input 2..2 overlap tag "
+        "'T_source_in' (input 2..2)",
+    ]
+
+
+def test_duplicate_yaml_keys_are_reported(cfgdir):
+    path = cfgdir / "tags.yaml"
+    text = path.read_text()
+    line = next(ln for ln in text.splitlines() if ln.strip().startswith("T_c:"))
+    path.write_text(text + line.replace("address: 14", "address: 40") + "\n")
+    first = text.splitlines().index(line) + 1
+    last = len(text.splitlines()) + 1
+    assert problems() == [f"config/tags.yaml: line {last}: duplicate key 'T_c' (first at line "
+                          f"{first}); YAML would silently keep the last"]
+
+
+def test_yaml_syntax_error(cfgdir):
+    (cfgdir / "tags.yaml").write_text("tags:\n  T_c: {register: input, address: 14\n")
+    [line] = problems()
+    assert line.startswith("config/tags.yaml: line 3 column 1: YAML syntax error:")
+
+
+def test_missing_and_empty_files(cfgdir, tmp_path):
+    (cfgdir / "plant.yaml").unlink()
+    assert problems() == ["config/gateway.yaml: top level: key 'plant_file': file not found: "
+                          "config/plant.yaml"]
+    assert load_config("config/gateway.yaml", load_plant=False).plant is None
+    (cfgdir / "plant.yaml").write_text("")
+    assert problems() == ["config/plant.yaml: file is empty"]
+    with pytest.raises(ConfigError, match="^nowhere.yaml: file not found$"):
+        load_config("nowhere.yaml")
+    (tmp_path / "list.yaml").write_text("- 1\n")
+    with pytest.raises(ConfigError, match="^list.yaml: top level: expected a mapping of keys, got"):
+        load_config("list.yaml")
+
+
+def test_validation_never_rewrites_the_files(cfgdir):
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["T_c"].update(range=[110, 0]))
+    before = {p.name: p.read_bytes() for p in cfgdir.iterdir()}
+    problems()
+    assert {p.name: p.read_bytes() for p in cfgdir.iterdir()} == before
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["T_c"].update(range=[0, 110]))
+    before = {p.name: p.read_bytes() for p in cfgdir.iterdir()}
+    load_config("config/gateway.yaml")
+    assert {p.name: p.read_bytes() for p in cfgdir.iterdir()} == before
+
+
+# ---------------------------------------------------------------- check-config and docs
+
+def run_cli(*argv) -> int:
+    parser = argparse.ArgumentParser(prog="hp-edge")
+    sub = parser.add_subparsers(dest="command", required=True)
+    gateway_cmds.register(sub)
+    args = parser.parse_args(list(argv))
+    return args.func(args)
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("check-config must not touch the network")
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+
+
+def test_check_config_prints_the_layout(cfgdir, capsys, no_network):
+    assert run_cli("check-config") == 0
+    out = capsys.readouterr().out
+    assert "FC4 input 0..31 (32 registers): T_sink_in, T_sink_out" in out
+    assert "FC3 holding 100..110 (11 registers): plc_clock, life_counter, p_m_sp" in out
+    assert "  p_suc_LS      input    16    float32  CDAB   1      0       bar   [-0.9, 25]" in out
+    assert "1028..1029  28      advice_age_s  uint32   s" in out
+    assert "5    0x0020  comm_fault" in out
+
+
+def test_check_config_reports_problems_and_exits_2(cfgdir, capsys, no_network):
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["T_sink_in"].update(type="int17"))
+    assert run_cli("check-config", "--config", "config/gateway.yaml") == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == [
+        "config/tags.yaml: tag 'T_sink_in': key 'type': 'int17' is not one of int16, uint16, "
+        "int32, uint32, float32",
+        "1 problem(s); nothing was started."]
+
+
+def test_docs_register_map_is_true_to_the_yaml():
+    cfg = load_config(DEFAULT, load_plant=False)
+    doc = (REPO / "docs" / "registers.md").read_text(encoding="utf-8")
+    assert doc == gateway_cmds.render_markdown(cfg), (
+        "docs/registers.md is out of date: hp-edge check-config --markdown > docs/registers.md")
+
+
+def test_every_status_bit_is_documented():
+    cfg = load_config(DEFAULT, load_plant=False)
+    assert {name for _, name in cfg.advisory.status_bits} <= set(gateway_cmds.STATUS_BIT_NOTES)

@@ -199,6 +199,7 @@ class _Point:
             for stage, g in guess._warm.items():
                 setattr(self, "_g_" + stage, g)
         self._ls_cache: tuple | None = None
+        self._memo: tuple | None = None
         self.evals = 0
 
     def ls_side(self, sat_m: SatState):
@@ -234,7 +235,18 @@ class _Point:
         setattr(self, "_g_" + stage, (p, rho, T))
 
     def evaluate(self, T_m: float, T_c: float, full: bool = False):
-        """Residual of the condenser zone [-] (and HS speed ratio) at (T_m, T_c)."""
+        """Residual of the condenser zone [-] (and HS speed ratio) at (T_m, T_c).
+
+        The last evaluation is memoised: the solver asks again for the converged point."""
+        memo = self._memo
+        if memo is not None and memo[0] == T_m and memo[1] == T_c:
+            d = memo[2]
+            return d if full else (d["r"], d["n_HS"])
+        d = self._evaluate(T_m, T_c)
+        self._memo = (T_m, T_c, d)
+        return d if full else (d["r"], d["n_HS"])
+
+    def _evaluate(self, T_m: float, T_c: float) -> dict:
         self.evals += 1
         par, fl, inp = self.par, self.fl, self.inp
         if not (self.T_e < T_m < T_c):
@@ -293,8 +305,6 @@ class _Point:
             Q_DSH = Q_DSH_max
         h_DSH = h4 - Q_DSH / m
         r = (Q_con - m * (h_DSH - sat_c.h_f)) / self.Q_source
-        if not full:
-            return r, n_HS
         return dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
                     h2s=h2s, T2s=T2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
                     h4s=h4s, T4s=T4s, h4=h4, T4=T4, cp_l=cp_l, cp_v=cp_v, Q_SC=Q_SC, h_SC=h_SC,
@@ -388,10 +398,6 @@ def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = Non
 def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, fluid: Fluid) -> CycleResult:
     pt = _Point(inp, params, fluid, guess)
     hs = params.comp_HS
-    if not pt.p_e < inp.p_m_sp:
-        raise InfeasibleOperation(
-            f"p_m set point {inp.p_m_sp / BAR:.3f} bar(a) is not above the evaporating pressure "
-            f"{pt.p_e / BAR:.3f} bar(a)", reason="p_m_sp_below_p_e")
     if inp.p_m_sp >= fluid.p_crit:
         raise InfeasibleOperation("p_m set point above the critical pressure", reason="p_m_sp_high")
     T_m_sp = fluid.sat_p(inp.p_m_sp).T
@@ -415,6 +421,10 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
                 raise InfeasibleOperation(
                     f"the sink cannot take the heat: condensing pressure would exceed the design "
                     f"limit {params.p_c_max / BAR:.1f} bar(a)", reason="p_c_high") from None
+            if T_m + 0.05 >= T_c_lo and f(lo) > 0.0:   # the condenser would work below p_m
+                raise InfeasibleOperation(
+                    f"intermediate pressure {fluid.sat_T(T_m).p / BAR:.2f} bar(a) is not below the "
+                    f"condensing pressure the sink allows", reason="p_m_above_p_c") from None
             raise
         T_c_guess[0] = T_c
         return T_c
@@ -429,17 +439,35 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
     # needed AT the set point decides: within the range -> "sp"; above N_max -> the HS runs at N_max
     # and p_m floats above the set point; below N_min -> at N_min, p_m floats below.
     T_m = T_m_sp
-    n_sp = n_HS_at(T_m_sp)
-    if n_sp > n_max + SPEED_TOL:
-        branch, bound, lo, hi = "hs_max", n_max, T_m_sp, T_c_guess[0] - 0.1
-    elif n_sp < n_min - SPEED_TOL:
-        branch, bound, lo, hi = "hs_min", n_min, pt.T_e + 0.05, T_m_sp
+    if inp.p_m_sp <= pt.p_e * 1.001:
+        # a set point at or below p_e cannot be held: the HS runs flat out and p_m floats
+        branch, bound, lo, hi = "hs_max", n_max, pt.T_e + 0.05, T_c_guess[0] - 0.1
     else:
-        branch = "sp"
+        n_sp = n_HS_at(T_m_sp)
+        if n_sp > n_max + SPEED_TOL:
+            branch, bound, lo, hi = "hs_max", n_max, T_m_sp, T_c_guess[0] - 0.1
+        elif n_sp < n_min - SPEED_TOL:
+            branch, bound, lo, hi = "hs_min", n_min, pt.T_e + 0.05, T_m_sp
+        else:
+            branch = "sp"
     if branch != "sp":
-        T_m0 = guess.T_m if (guess and guess.branch == branch and lo < guess.T_m < hi) else T_m_sp
-        T_m, _, slope_m = _secant(lambda Tm: n_HS_at(Tm) - bound, T_m0, slope_m, SPEED_TOL,
-                                  lo, hi, f"intermediate pressure at HS speed bound ({branch})")
+        T_m0 = guess.T_m if (guess and guess.branch == branch and lo < guess.T_m < hi) else (
+            T_m_sp if lo < T_m_sp < hi else 0.5 * (lo + hi))
+        g = lambda Tm: n_HS_at(Tm) - bound  # noqa: E731
+        try:
+            T_m, _, slope_m = _secant(g, T_m0, slope_m, SPEED_TOL, lo, hi,
+                                      f"intermediate pressure at HS speed bound ({branch})")
+        except ConvergenceError:
+            # N_HS falls as p_m rises; no root in [lo, hi] means the bound cannot be met at all
+            if branch == "hs_min" and g(lo) < 0.0:
+                raise InfeasibleOperation(
+                    f"HS compressor at its minimum speed {hs.N_min:.0f} rpm moves more than the LS "
+                    f"stage delivers: duty below the HS turndown", reason="hs_speed_low") from None
+            if branch == "hs_max" and g(hi) > 0.0:
+                raise InfeasibleOperation(
+                    f"HS compressor at its maximum speed {hs.N_max:.0f} rpm cannot carry the LS "
+                    f"stage's flow at any intermediate pressure", reason="hs_speed_high") from None
+            raise
 
     T_c = solve_Tc(T_m)
     s = pt.evaluate(T_m, T_c, full=True)

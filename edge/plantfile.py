@@ -36,4 +36,4 @@ def load_plant(path: str | Path = DEFAULT_PLANT, backend: str | None = None):
     try:
         return PlantParams.from_dict(d)
     except ParamError as exc:
-        raise PlantFileError(f"{path}: {exc}") from exc
+        raise PlantFileError("\n".join(f"{path}: {line}" for line in str(exc).splitlines())) from exc

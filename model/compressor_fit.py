@@ -38,7 +38,7 @@ class FitResult:
 def read_table(path: str) -> pd.DataFrame:
     """Read and check the table; errors name the column or the data row (1 = first data row)."""
     try:
-        raw = pd.read_csv(path, dtype=str, skipinitialspace=True)
+        raw = pd.read_csv(path, dtype=str, skipinitialspace=True, keep_default_na=False)
     except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
         raise TableError(f"{path}: cannot read table: {exc}") from exc
     raw.columns = [c.strip() for c in raw.columns]
@@ -50,7 +50,7 @@ def read_table(path: str) -> pd.DataFrame:
         raise TableError(f"{path}: the table has no data rows")
     out = {}
     for c in TABLE_COLUMNS:
-        vals = pd.to_numeric(raw[c].str.strip(), errors="coerce")
+        vals = pd.to_numeric(raw[c].str.strip().replace("", "nan"), errors="coerce")
         bad = vals.isna() | ~np.isfinite(vals)
         if bad.any():
             i = int(np.flatnonzero(bad.to_numpy())[0])

@@ -144,13 +144,28 @@ class PlantParams:
     @classmethod
     def from_dict(cls, d: dict) -> "PlantParams":
         """Build from the plant.yaml dict (units in the key names: bar, m3/h, kJ, K/kW, ...)."""
+        errors: list[str] = []
+
+        class _Missing(Exception):
+            pass
+
         def get(path: str):
             node = d
             for part in path.split("."):
                 if not isinstance(node, dict) or part not in node:
-                    raise ParamError(f"missing key '{path}'")
+                    errors.append(f"missing key '{path}'")
+                    raise _Missing
                 node = node[part]
             return node
+
+        def collect(fn, *a, default=float("nan")):
+            try:
+                return fn(*a)
+            except _Missing:
+                return default
+            except ParamError as exc:
+                errors.append(str(exc))
+                return default
 
         def num(path: str, positive: bool = True) -> float:
             v = get(path)
@@ -179,13 +194,14 @@ class PlantParams:
                 raise ParamError(f"key '{base}.speed_min_rpm': must be below speed_max_rpm")
             return comp
 
-        dp = get("source_pressure_drop.dp_clean_coef")
-        if not (isinstance(dp, (list, tuple)) and len(dp) == 3
-                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dp)):
-            raise ParamError("key 'source_pressure_drop.dp_clean_coef': expected 3 numbers "
-                             "[bar, bar/(m3/h), bar/(m3/h)^2]")
-        # config: dp [bar] with V [m3/h]  ->  SI: dp [Pa] with V [m3/s]
-        dp_si = (dp[0] * BAR, dp[1] * BAR / M3H, dp[2] * BAR / M3H ** 2)
+        def dp_coef():
+            dp = get("source_pressure_drop.dp_clean_coef")
+            if not (isinstance(dp, (list, tuple)) and len(dp) == 3
+                    and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dp)):
+                raise ParamError("key 'source_pressure_drop.dp_clean_coef': expected 3 numbers "
+                                 "[bar, bar/(m3/h), bar/(m3/h)^2]")
+            # config: dp [bar] with V [m3/h]  ->  SI: dp [Pa] with V [m3/s]
+            return (dp[0] * BAR, dp[1] * BAR / M3H, dp[2] * BAR / M3H ** 2)
         cal = d.get("calibrated", {}) or {}
 
         def calnum(key: str, default: float) -> float:
@@ -195,24 +211,27 @@ class PlantParams:
             return float(v)
 
         backend = d.get("property_backend", "HEOS")
-        return cls(
+        kwargs = dict(
             fluid=str(d.get("fluid", "Ammonia")), backend=str(backend),
             ambient_pressure=float(d.get("ambient_pressure_bar", DEFAULT_AMBIENT_BAR)) * BAR,
-            cp_w=num("water.cp_kJ_per_kgK") * 1e3, rho_w=num("water.rho_kg_per_m3"),
-            U_eva=num("evaporator.U_W_per_m2K"), A_eva=num("evaporator.A_m2"),
-            superheat=num("evaporator.superheat_K"),
-            U_DSH=num("desuperheater.U_W_per_m2K"), A_DSH=num("desuperheater.A_m2"),
-            U_con=num("condenser.U_W_per_m2K"), A_con=num("condenser.A_m2"),
-            design_pinch=num("condenser.design_pinch_K"),
-            p_c_max=num("condenser.design_pressure_bar_a") * BAR,
-            U_SC=num("subcooler.U_W_per_m2K"), A_SC=num("subcooler.A_m2"),
-            comp_LS=compressor("LS"), comp_HS=compressor("HS"),
-            dp_clean_coef=dp_si,
-            CF_DSH=calnum("CF_DSH", 1.0), CF_con=calnum("CF_con", 1.0), CF_SC=calnum("CF_SC", 1.0),
-            CF_eva=calnum("CF_eva", 1.0), R_th_f=calnum("R_th_f_K_per_kW", 0.0) * 1e-3,
-            CF_dp_f=calnum("CF_dp_f", 1.0),
+            cp_w=collect(num, "water.cp_kJ_per_kgK") * 1e3, rho_w=collect(num, "water.rho_kg_per_m3"),
+            U_eva=collect(num, "evaporator.U_W_per_m2K"), A_eva=collect(num, "evaporator.A_m2"),
+            superheat=collect(num, "evaporator.superheat_K"),
+            U_DSH=collect(num, "desuperheater.U_W_per_m2K"), A_DSH=collect(num, "desuperheater.A_m2"),
+            U_con=collect(num, "condenser.U_W_per_m2K"), A_con=collect(num, "condenser.A_m2"),
+            design_pinch=collect(num, "condenser.design_pinch_K"),
+            p_c_max=collect(num, "condenser.design_pressure_bar_a") * BAR,
+            U_SC=collect(num, "subcooler.U_W_per_m2K"), A_SC=collect(num, "subcooler.A_m2"),
+            comp_LS=collect(compressor, "LS", default=None), comp_HS=collect(compressor, "HS", default=None),
+            dp_clean_coef=collect(dp_coef, default=(0.0, 0.0, 0.0)),
+            CF_DSH=collect(calnum, "CF_DSH", 1.0), CF_con=collect(calnum, "CF_con", 1.0), CF_SC=collect(calnum, "CF_SC", 1.0),
+            CF_eva=collect(calnum, "CF_eva", 1.0), R_th_f=collect(calnum, "R_th_f_K_per_kW", 0.0) * 1e-3,
+            CF_dp_f=collect(calnum, "CF_dp_f", 1.0),
             extra={k: v for k, v in d.items() if k in ("calibration", "optimization", "surrogate")},
         )
+        if errors:
+            raise ParamError("\n".join(errors))
+        return cls(**kwargs)
 
 
 @dataclass(frozen=True)

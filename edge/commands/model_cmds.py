@@ -51,7 +51,8 @@ def _params(args):
     try:
         return load_plant(args.config, getattr(args, "backend", None))
     except PlantFileError as exc:
-        print(f"hp-edge: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines():
+            print(f"hp-edge: {line}", file=sys.stderr)
         raise SystemExit(2) from None
 
 

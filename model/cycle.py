@@ -219,7 +219,7 @@ class _Point:
         h2s, T2s, rho2s = fl.isentropic(sat_m.p, self.s1, self._rhoT_guess("LS", sat_m.p))
         self._remember("LS", sat_m.p, rho2s, T2s)
         h2 = self.h1 + (h2s - self.h1) / eta
-        out = (m_LS, n, ev, eta, h2s, T2s, h2)
+        out = (m_LS, n, ev, eta, h2s, T2s, rho2s, h2)
         self._ls_cache = (sat_m.T, out)
         return out
 
@@ -254,7 +254,7 @@ class _Point:
                                    f"T_m={T_m:.3f} K, T_c={T_c:.3f} K", reason="no_convergence")
         sat_m = fl.sat_T(T_m)
         sat_c = fl.sat_T(T_c)
-        m_LS, n_LS, ev_LS, eta_LS, h2s, T2s, h2 = self.ls_side(sat_m)
+        m_LS, n_LS, ev_LS, eta_LS, h2s, T2s, rho2s, h2 = self.ls_side(sat_m)
         # subcooler: liquid capacity from the saturated-liquid secant over 5 K
         cp_l = (sat_c.h_f - fl.h_liq_sat(T_c - 5.0)) / 5.0
         dT_SC = T_c - inp.T_sink_in
@@ -306,8 +306,8 @@ class _Point:
         h_DSH = h4 - Q_DSH / m
         r = (Q_con - m * (h_DSH - sat_c.h_f)) / self.Q_source
         return dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
-                    h2s=h2s, T2s=T2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
-                    h4s=h4s, T4s=T4s, h4=h4, T4=T4, cp_l=cp_l, cp_v=cp_v, Q_SC=Q_SC, h_SC=h_SC,
+                    h2s=h2s, T2s=T2s, rho2s=rho2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
+                    h4s=h4s, T4s=T4s, rho4s=rho4s, h4=h4, T4=T4, cp_l=cp_l, cp_v=cp_v, Q_SC=Q_SC, h_SC=h_SC,
                     Q_con=Q_con, Q_DSH=Q_DSH, h_DSH=h_DSH, T_w1=T_w1, T_w2=T_w2,
                     dsh_condensing=dsh_condensing, r=r)
 
@@ -490,15 +490,17 @@ def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c:
     pinch = min(T_SC_out - inp.T_sink_in, T_c - s["T_w1"], T_c - s["T_w2"],
                 T_DSH_out - s["T_w2"], s["T4"] - T_sink_out)
     p_e, p_m, p_c = sat_e.p, sat_m.p, sat_c.p
+    T4, rho4 = fl.vapour_ph(p_c, s["h4"], (s["rho4s"], s["T4s"]))
     states = {
         "eva_out": State(pt.T_e, p_e, sat_e.h_g),
         "LS_suc": State(pt.T1, p_e, pt.h1),
         "LS_dis_is": State(s["T2s"], p_m, s["h2s"]),
-        "LS_dis": State(fl.T_ph(p_m, s["h2"]), p_m, s["h2"]),
+        "LS_dis": State(fl.vapour_ph(p_m, s["h2"], (s["rho2s"], s["T2s"]))[0], p_m, s["h2"]),
         "HS_suc": State(T_m, p_m, sat_m.h_g),
         "HS_dis_is": State(s["T4s"], p_c, s["h4s"]),
-        "HS_dis": State(fl.T_ph(p_c, s["h4"]), p_c, s["h4"]),
-        "DSH_out": State(fl.T_ph(p_c, s["h_DSH"]) if not s["dsh_condensing"] else T_c, p_c, s["h_DSH"]),
+        "HS_dis": State(T4, p_c, s["h4"]),
+        "DSH_out": State(fl.vapour_ph(p_c, s["h_DSH"], (rho4, T4))[0] if not s["dsh_condensing"] else T_c,
+                         p_c, s["h_DSH"]),
         "con_out": State(T_c, p_c, sat_c.h_f),
         "SC_out": State(T_SC_out, p_c, s["h_SC"]),
         "HS_valve_out": State(T_m, p_m, s["h_SC"]),

@@ -41,6 +41,12 @@ _PYMODBUS_SLACK_S = 1.0      # pymodbus' own timeout is a backstop behind ours
 _FC_READ = {"holding": 3, "input": 4}
 
 
+def quiet_pymodbus_logging(level: int = logging.ERROR) -> None:
+    """pymodbus logs every failed connect attempt as a warning of its own; PlcClient already
+    reports the first failure loudly and repeats at debug. Commands call this once at start."""
+    logging.getLogger("pymodbus").setLevel(level)
+
+
 class PlcError(Exception):
     """Base of the errors of this module."""
 

@@ -209,8 +209,10 @@ def cmd_read(args: argparse.Namespace) -> int:
         for line in exc.problems:
             print(line, file=sys.stderr)
         return 2
-    # pymodbus logs each failed connect as a warning of its own; we report the outcome once.
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    from edge.plc import quiet_pymodbus_logging
+
+    quiet_pymodbus_logging(logging.CRITICAL)  # one attempt, its outcome is reported below
+    logging.getLogger("edge.plc").setLevel(logging.ERROR)
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
                                    ("device_id", args.device_id)) if v is not None}
     if args.timeout <= 0:

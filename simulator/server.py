@@ -1,0 +1,488 @@
+"""The simulated PLC: a pymodbus 3.16 Modbus TCP server in front of the simulated plant.
+
+Register memory is a pymodbus ``SimDevice`` (separate coil / discrete / holding / input blocks):
+  input 0..       every plant tag of tags.yaml at its address (gaps stay undefined -> exception 2)
+  holding 100..   PLC clock (plant time, uint32 epoch s), life counter; 110 p_m,sp (writable)
+  holding 1000..  the advisory block of gateway.yaml (writable, readable)
+A client write anywhere but the set point and the advisory block gets exception 2 (ILLEGAL DATA
+ADDRESS) and changes nothing: undefined addresses by SimDevice itself, defined read-only registers
+by the SimDevice action hook. The plant task pushes values with ``server.async_setValues`` using
+read function codes (3 / 4), which never carry values on the wire, so the hook can tell the two
+apart. Every write request received is recorded in ``write_log`` (accepted or not).
+
+Slow responses, dropped connections and every write's outcome need the request and its response
+together, which SimDevice's hook does not see; the server therefore uses a small subclass of
+pymodbus's ServerRequestHandler (pymodbus is pinned <3.17).
+
+Usage (tests, demo)::
+
+    sim = PlantSimulator(port=0, speed=600)
+    await sim.start()            # listening on 127.0.0.1, plant stepping
+    sim.port                     # the bound port
+    sim.faults.enable("stuck", tag="T_e"); sim.faults.disable("stuck", tag="T_e")
+    await sim.wait_ticks(2)      # synchronise on register updates, not sleeps
+    sim.truth                    # latest hidden truth; sim.writes_rejected(); sim.write_log
+    await sim.stop()
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pymodbus.client.mixin import ModbusClientMixin
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.pdu import ExceptionResponse
+from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from .config import SimulatorConfig, load_simulator_config, read_advisory, read_tags
+from .faults import Faults
+from .plant import Plant
+from .registers import SETPOINT_TAG, encode, encode_run, register_runs, writable_ranges
+
+log = logging.getLogger("hp_edge.simulator")
+
+WRITE_FCS = (5, 6, 15, 16, 22, 23)
+INTERNAL_FC = {"input": 4, "holding": 3}     # plant pushes: read FCs never carry values on the wire
+UNUSED_BITS_ADDRESS = 65520                  # SimDevice needs coil/discrete blocks; park them here
+MAX_LOOP_HZ = 20.0                           # register pushes per wall second at most
+
+
+@dataclass(frozen=True)
+class WriteRecord:
+    """One write request as received and answered."""
+    wall_time: float
+    plant_time: float
+    function_code: int
+    address: int
+    count: int
+    values: tuple
+    accepted: bool
+    exception_code: int | None
+
+
+@dataclass
+class _Stats:
+    requests: int = 0
+    dropped: int = 0
+    delayed: int = 0
+    pushes: int = 0
+    catchups: int = 0            # the plant fell behind wall time and was re-anchored
+    restarts: int = 0
+    fc: dict = field(default_factory=dict)
+
+
+class _Handler(ServerRequestHandler):
+    """pymodbus's request handler with fault hooks and the write log (same reply logic)."""
+
+    async def handle_request(self):
+        pdu, addr = self.last_pdu, self.last_addr
+        if not pdu:
+            return
+        sim: PlantSimulator = self.server.sim
+        sim.stats.requests += 1
+        delay = sim.faults.response_delay()
+        if delay > 0:
+            sim.stats.delayed += 1
+            await asyncio.sleep(delay)
+        if sim.faults.should_drop() or not self.transport:
+            sim.stats.dropped += 1
+            sim._record(pdu, None)
+            self.close()
+            return
+        try:
+            response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+        except NoSuchIdException:
+            response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            log.error("request fc=%s could not be served: %s", pdu.function_code, exc)
+            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+        sim._record(pdu, response)
+        response.transaction_id = pdu.transaction_id
+        response.dev_id = pdu.dev_id
+        if self.transport:
+            self.server_send(response, addr)
+
+
+class _Server(ModbusTcpServer):
+    def __init__(self, sim: "PlantSimulator", context, address: tuple[str, int]):
+        super().__init__(context, address=address)
+        self.sim = sim
+
+    def callback_new_connection(self):
+        return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+class PlantSimulator:
+    """The simulator as an in-process object: ``await start()`` ... ``await stop()``.
+
+    cfg: SimulatorConfig (default config/simulator.yaml); seed overrides cfg.seed.
+    speed: plant seconds per wall second (1..3600 for the CLI; any positive value here).
+    truth_log: path of a JSONL file that gets one hidden-truth record per truth interval.
+    """
+
+    def __init__(self, cfg: SimulatorConfig | None = None, *, host: str = "127.0.0.1",
+                 port: int = 5020, speed: float = 60.0, seed: int | None = None,
+                 truth_log: str | Path | None = None, plant: Plant | None = None):
+        cfg = cfg or load_simulator_config()
+        if seed is not None:
+            cfg = cfg.replace(seed=seed)
+        if not speed > 0:
+            raise ValueError("speed must be > 0")
+        self.cfg = cfg
+        self.host, self._port_req, self.speed = host, port, float(speed)
+        self.tags = read_tags(cfg.tags_file)
+        self.advisory = read_advisory(cfg.gateway_file)
+        self.runs = register_runs(self.tags)
+        self.writable = writable_ranges(self.tags, self.advisory)
+        self._check_layout()
+        self.plant = plant or Plant(cfg)
+        self.faults = Faults(self.tags, seed=cfg.seed)
+        self.faults.listeners.append(self._on_fault)
+        self.truth_log_path = Path(truth_log) if truth_log else None
+        self.truth: dict = {}
+        self.truth_history: list[dict] = []
+        self.truth_history_max = 100_000
+        self.write_log: list[WriteRecord] = []
+        self.stats = _Stats()
+        self.served: dict[str, float] = {}       # engineering values last pushed
+        self.life_counter = 0
+        self.port: int | None = None
+        self._server: _Server | None = None
+        self._context = None
+        self._task: asyncio.Task | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        self._truth_fh = None
+        self._update: asyncio.Condition | None = None     # created in start (needs a loop)
+        self._pushes = 0
+        self._stopping = False
+        self._restart_task: asyncio.Task | None = None
+        self._down: asyncio.Event | None = None
+        self._sp_last: float | None = None
+        self._schedule = [(f, False) for f in cfg.faults]
+        self._errors: list[BaseException] = []
+
+    # --------------------------------------------------------------------------- layout ----
+    def _check_layout(self) -> None:
+        adv = self.advisory
+        for run in self.runs:
+            if run.register == "holding" and run.start < adv.start + adv.size and adv.start < run.start + run.count:
+                raise ValueError(f"{self.cfg.tags_file}: tags at holding {run.start}..{run.start + run.count - 1} "
+                                 f"overlap the advisory block of {self.cfg.gateway_file}")
+
+    def _device(self) -> SimDevice:
+        holding = [SimData(r.start, count=r.count, values=0, datatype=DataType.REGISTERS)
+                   for r in self.runs if r.register == "holding"]
+        holding.append(SimData(self.advisory.start, count=self.advisory.size, values=0,
+                               datatype=DataType.REGISTERS))
+        inputs = [SimData(r.start, count=r.count, values=0, datatype=DataType.REGISTERS)
+                  for r in self.runs if r.register == "input"]
+        if not inputs:   # SimDevice needs every block non-empty
+            inputs = [SimData(UNUSED_BITS_ADDRESS, values=0, datatype=DataType.REGISTERS)]
+        bits = [SimData(UNUSED_BITS_ADDRESS, count=1, values=0, datatype=DataType.BITS)]
+        return SimDevice(id=self.cfg.device_id,
+                         simdata=(bits, [SimData(UNUSED_BITS_ADDRESS, values=0, datatype=DataType.BITS)],
+                                  holding, inputs),
+                         action=self._action)
+
+    def is_writable(self, address: int, count: int) -> bool:
+        return any(lo <= address and address + count <= hi for lo, hi in self.writable)
+
+    async def _action(self, function_code, start_address, address, count, registers, set_values):
+        """SimDevice hook: reads pass; client writes only into the set point / advisory block."""
+        if set_values is None or function_code in (3, 4):
+            return None
+        if function_code in (6, 16, 22, 23) and self.is_writable(address, count):
+            return None
+        return ExcCodes.ILLEGAL_ADDRESS
+
+    def _record(self, pdu, response) -> None:
+        """Count the request; log writes (response None: dropped unanswered)."""
+        fc = pdu.function_code
+        self.stats.fc[fc] = self.stats.fc.get(fc, 0) + 1
+        if fc not in WRITE_FCS:
+            return
+        if fc == 23:
+            address, values = pdu.write_address, tuple(pdu.write_registers)
+        elif fc == 22:
+            address, values = pdu.address, (pdu.and_mask, pdu.or_mask)
+        elif fc in (5, 15):
+            address, values = pdu.address, tuple(bool(b) for b in pdu.bits)
+        else:
+            address, values = pdu.address, tuple(pdu.registers)
+        count = 1 if fc == 22 else len(values)
+        accepted = response is not None and not isinstance(response, ExceptionResponse)
+        exc = int(response.exception_code) if isinstance(response, ExceptionResponse) else None
+        self.write_log.append(WriteRecord(time.time(), self.plant.t, fc, address, count, values,
+                                          accepted, exc))
+
+    def writes_rejected(self) -> list[WriteRecord]:
+        return [w for w in self.write_log if not w.accepted]
+
+    def writes_outside(self, start: int, size: int) -> list[WriteRecord]:
+        """Write requests (accepted or not) that touched anything outside [start, start+size)."""
+        return [w for w in self.write_log
+                if not (start <= w.address and w.address + w.count <= start + size)]
+
+    # ----------------------------------------------------------------------- lifecycle ----
+    async def start(self) -> None:
+        """Listen, push the first register image and start stepping the plant."""
+        self._update = asyncio.Condition()
+        self._down = asyncio.Event()
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hp-sim-plant")
+        if self.truth_log_path:
+            self.truth_log_path.parent.mkdir(parents=True, exist_ok=True)
+            self._truth_fh = open(self.truth_log_path, "a", encoding="utf-8")
+        await self._listen(self._port_req)
+        await self._push()
+        self._stopping = False
+        self._task = asyncio.create_task(self._run(), name="hp-sim-plant-loop")
+
+    async def _listen(self, port: int) -> None:
+        server = _Server(self, self._device(), (self.host, port))
+        if self._context is not None:
+            server.context = self._context     # a restart keeps the PLC's register memory
+        self._context = server.context
+        await server.serve_forever(background=True)
+        sockets = getattr(server.transport, "sockets", None) or []
+        if not sockets:
+            raise RuntimeError(f"simulator could not listen on {self.host}:{port}")
+        self.port = sockets[0].getsockname()[1]
+        self._server = server
+        log.info("simulator listening on %s:%s", self.host, self.port)
+
+    async def stop(self) -> None:
+        self._stopping = True
+        for task in (self._task, self._restart_task):
+            if task is not None and not task.done():
+                task.cancel()
+                try:
+                    await task
+                except asyncio.CancelledError:
+                    pass
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+        if self._truth_fh is not None:
+            self._truth_fh.close()
+            self._truth_fh = None
+        async with self._update:
+            self._update.notify_all()
+
+    async def __aenter__(self) -> "PlantSimulator":
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    @property
+    def is_listening(self) -> bool:
+        return self._server is not None
+
+    async def drop_connections(self) -> int:
+        """Close every open client connection now (the listener stays); returns how many."""
+        if self._server is None:
+            return 0
+        conns = list(self._server.active_connections.values())
+        for c in conns:
+            c.close()
+        self.stats.dropped += len(conns)
+        return len(conns)
+
+    async def restart(self, down_s: float = 1.0) -> None:
+        """Server restart: listener and connections closed for down_s wall seconds, then back on
+        the same port with the same register memory. Returns when it listens again."""
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
+        self.stats.restarts += 1
+        self._down.clear()
+        try:
+            await asyncio.wait_for(self._down.wait(), timeout=down_s)
+        except asyncio.TimeoutError:
+            pass
+        if not self._stopping:
+            await self._listen(self.port)
+
+    def _on_fault(self, kind: str, tag: str | None, on: bool) -> None:
+        if kind != "restart":
+            return
+        if on:
+            spec = next(f for f in self.faults.active() if f.kind == "restart")
+            if self._restart_task is None or self._restart_task.done():
+                self._restart_task = asyncio.get_running_loop().create_task(self._restart_then_clear(spec.down_s))
+        elif self._down is not None:
+            self._down.set()
+
+    async def _restart_then_clear(self, down_s: float) -> None:
+        await self.restart(down_s)
+        if self.faults.is_on("restart"):
+            self.faults.disable("restart")
+
+    # ---------------------------------------------------------------------------- loop ----
+    @property
+    def plant_time(self) -> float:
+        return self.plant.t
+
+    async def wait_ticks(self, n: int = 1, timeout: float = 10.0) -> None:
+        """Wait until the registers have been pushed n more times (TimeoutError otherwise)."""
+        target = self._pushes + n
+        async with self._update:
+            await asyncio.wait_for(self._update.wait_for(
+                lambda: self._pushes >= target or self._stopping), timeout)
+        self._raise_errors()
+
+    async def wait_plant_time(self, t: float, timeout: float = 10.0) -> None:
+        """Wait until plant time has reached t [epoch s] (registers show it unless frozen)."""
+        async with self._update:
+            await asyncio.wait_for(self._update.wait_for(
+                lambda: self.plant.t >= t or self._stopping),
+                timeout)
+        self._raise_errors()
+
+    def _raise_errors(self) -> None:
+        if self._errors:
+            raise RuntimeError("simulator plant loop failed") from self._errors[0]
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        wall0, plant0 = loop.time(), self.plant.t
+        min_period = 1.0 / MAX_LOOP_HZ
+        max_ticks = max(1, int(math.ceil(2.0 * self.speed / self.plant.dt)))   # <= 2 s of plant time
+        try:
+            while not self._stopping:
+                await self._sync_setpoint()
+                target = plant0 + self.speed * (loop.time() - wall0)
+                await loop.run_in_executor(self._executor, self.plant.advance_to, target, max_ticks)
+                if target - self.plant.t > 4.0 * self.speed + self.plant.dt:
+                    # cannot keep up (slow machine, huge speed): re-anchor instead of bursting
+                    self.stats.catchups += 1
+                    wall0, plant0 = loop.time(), self.plant.t
+                self._apply_schedule()
+                self._drain_truth()
+                if not self.faults.frozen:
+                    await self._push()
+                async with self._update:
+                    self._update.notify_all()
+                next_plant = self.plant.t + self.plant.dt
+                due = wall0 + (next_plant - plant0) / self.speed
+                await asyncio.sleep(max(due - loop.time(), min_period if self.speed * min_period
+                                        > self.plant.dt else 0.0, 0.001))
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:   # surfaced to waiters and re-raised: a dead plant must be loud
+            log.exception("simulator plant loop failed")
+            self._errors.append(exc)
+            async with self._update:
+                self._update.notify_all()
+            raise
+
+    async def _sync_setpoint(self) -> None:
+        """Follow the set-point register (unless frozen: the write never reaches the PLC)."""
+        spec = self.tags.get(SETPOINT_TAG)
+        if spec is None or self.faults.frozen or self._server is None:
+            return
+        regs = await self._server.async_getValues(self.cfg.device_id, 3, spec.address, spec.count)
+        raw = ModbusClientMixin.convert_from_registers(
+            list(regs), getattr(ModbusClientMixin.DATATYPE, spec.type.upper()),
+            word_order="little" if spec.byte_order in ("CDAB", "DCBA") else "big")
+        if spec.sentinel is not None and raw == spec.sentinel:
+            return
+        value = raw * spec.scale + spec.offset
+        if self._sp_last is not None and abs(value - self._sp_last) < 1e-9:
+            return
+        used = self.plant.set_p_m_sp(value)
+        self._sp_last = used
+        if abs(used - value) > spec.scale / 2:      # clamped: the PLC shows what it uses
+            await self._server.async_setValues(self.cfg.device_id, 3, spec.address, encode(spec, used))
+
+    def _apply_schedule(self) -> None:
+        if not self._schedule:
+            return
+        h = (self.plant.t - self.plant.t0) / 3600.0
+        new = []
+        for spec, on in self._schedule:
+            start = spec.at_h if spec.at_h is not None else 0.0
+            end = start + spec.duration_h if spec.duration_h is not None else math.inf
+            want = start <= h < end
+            if want and not on:
+                self.faults.enable_spec(spec)
+            elif on and not want and spec.kind != "restart":
+                self.faults.disable(spec.kind, spec.tag)
+            new.append((spec, want or (on and spec.kind == "restart")))
+        self._schedule = new
+
+    def _drain_truth(self) -> None:
+        recs = self.plant.drain_truth()
+        if not recs:
+            return
+        self.truth = recs[-1]
+        self.truth_history.extend(recs)
+        if len(self.truth_history) > self.truth_history_max:
+            del self.truth_history[: len(self.truth_history) - self.truth_history_max]
+        if self._truth_fh is not None:
+            for r in recs:
+                self._truth_fh.write(json.dumps(_jsonable(r)) + "\n")
+            self._truth_fh.flush()
+
+    def current_values(self) -> dict[str, float]:
+        """Engineering values the plant shows now, with faults applied, before quantization."""
+        values = dict(self.plant.measured)
+        values.update({k: float(v) for k, v in self.plant.flags.items()})
+        values = self.faults.apply(values)
+        values["plc_clock"] = float(int(self.plant.t))
+        values["life_counter"] = float(self.life_counter)
+        values["p_m_sp"] = self.plant.p_m_sp_bar_g
+        return values
+
+    async def _push(self) -> None:
+        if self._server is None:      # restarting: the PLC keeps running, nobody can read
+            return
+        self.life_counter = (self.life_counter + 1) % 65536
+        values = self.current_values()
+        dev = self.cfg.device_id
+        for run in self.runs:
+            if run.register == "holding" and run.tags[0].name == SETPOINT_TAG:
+                continue      # written by clients; the plant only writes it back when clamping
+            await self._server.async_setValues(dev, INTERNAL_FC[run.register], run.start,
+                                               encode_run(run, values))
+        if self._sp_last is None:
+            spec = self.tags.get(SETPOINT_TAG)
+            if spec is not None:
+                await self._server.async_setValues(dev, 3, spec.address, encode(spec, values["p_m_sp"]))
+                self._sp_last = values["p_m_sp"]
+        values["_t"] = self.plant.t
+        self.served = values
+        self.stats.pushes += 1
+        self._pushes += 1
+
+    # ----------------------------------------------------------------- direct access ----
+    async def read_registers(self, register: str, address: int, count: int) -> list[int]:
+        """Read the register memory directly (no Modbus round trip), e.g. the advisory block."""
+        if self._context is None:
+            raise RuntimeError("simulator not started")
+        res = await self._context.async_getValues(self.cfg.device_id, INTERNAL_FC[register], address, count)
+        if isinstance(res, ExcCodes):
+            raise ValueError(f"{register} {address}+{count}: {res.name}")
+        return list(res)
+
+
+def _jsonable(rec: dict) -> dict:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in rec.items()}
+

@@ -28,6 +28,7 @@ TYPES: dict[str, tuple[str, int]] = {
     "float32": ("f", 2),
 }
 BYTE_ORDERS: tuple[str, ...] = ("ABCD", "CDAB", "BADC", "DCBA")
+REGISTER_SPACES: tuple[str, ...] = ("holding", "input")  # FC3/FC16 and FC4
 FLOAT32_MAX = struct.unpack(">f", bytes.fromhex("7f7fffff"))[0]
 MAX_READ_COUNT = 125   # registers per FC3/FC4 request (Modbus application protocol)
 MAX_WRITE_COUNT = 123  # registers per FC16 request

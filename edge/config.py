@@ -8,21 +8,22 @@ keys documented in the YAML files. Paths in gateway.yaml are relative to that fi
 from __future__ import annotations
 
 import difflib
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from edge.codec import BYTE_ORDERS, MAX_WRITE_COUNT, TYPES, raw_limits, register_count
+from edge.advisory import NAME_PATTERN as _NAME
+from edge.advisory import AdvisoryConfig, AdvisoryField, parse_advisory
+from edge.codec import BYTE_ORDERS, REGISTER_SPACES, TYPES, raw_limits, register_count
 
 DEFAULT_CONFIG = Path("config/gateway.yaml")
-REGISTER_SPACES = ("holding", "input")
+__all__ = ["AdvisoryConfig", "AdvisoryField", "ConfigError", "GatewayConfig", "PlcConfig",
+           "TagConfig", "load_config", "DEFAULT_CONFIG"]
 PRESSURE_KINDS = ("gauge", "absolute")
 PRESSURE_UNITS = ("bar", "mbar", "Pa", "kPa", "MPa", "psi")
 OPTIMIZERS = ("model", "surrogate")
-_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 class ConfigError(Exception):
@@ -56,43 +57,6 @@ class TagConfig:
     def end(self) -> int:
         """First address after this tag."""
         return self.address + self.count
-
-
-@dataclass(frozen=True)
-class AdvisoryField:
-    name: str
-    offset: int
-    type: str
-    unit: str = ""
-    description: str = ""
-
-    @property
-    def count(self) -> int:
-        return register_count(self.type)
-
-
-@dataclass(frozen=True)
-class AdvisoryConfig:
-    register: str
-    start: int
-    size: int
-    byte_order: str
-    fields: tuple[AdvisoryField, ...]            # ordered by offset
-    status_bits: tuple[tuple[int, str], ...]     # (bit, name), ordered by bit
-
-    @property
-    def end(self) -> int:
-        """First address after the block."""
-        return self.start + self.size
-
-    def field(self, name: str) -> AdvisoryField:
-        for f in self.fields:
-            if f.name == name:
-                return f
-        raise KeyError(name)
-
-    def contains(self, address: int, count: int) -> bool:
-        return count >= 1 and self.start <= address and address + count <= self.end
 
 
 @dataclass(frozen=True)
@@ -173,9 +137,14 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
     names: set = set()
     if tags_path is not None:
         tags, names = _tags(p, tags_path)
-    advisory = _advisory(_Section(p, gw_file, "section 'advisory'", top.raw("advisory")))
+    advisory = parse_advisory(_Section(p, gw_file, "section 'advisory'", top.raw("advisory")))
     if advisory is not None:
         _advisory_vs_tags(p, gw_file, advisory, tags, tags_path)
+    for t in tags:
+        if scan is not None and t.max_age_s < scan:
+            p.add(_display(tags_path), f"tag '{t.name}'", "max_age_s",
+                  f"{t.max_age_s:g} s is shorter than scan_interval_s ({scan:g} s) of {gw_file}; "
+                  "the value would always be stale")
     life_counter = top.string("life_counter_tag", nullable=True)
     if life_counter and names and life_counter not in names:
         top.problem("life_counter_tag", f"{life_counter!r} is not a tag of {_display(tags_path)}")
@@ -232,9 +201,9 @@ def _plc(sec: _Section) -> PlcConfig | None:
 
 def _cross_checks(top, plc, scan, aggregate, calib_every, window_h, min_samples) -> None:
     if plc is not None and scan is not None and plc.timeout_s >= scan:
-        top.p.add(top.file, "section 'plc'", "timeout_s",
-                  f"{plc.timeout_s:g} s per request must be shorter than scan_interval_s "
-                  f"({scan:g} s), or one poll cycle could overrun the scan interval")
+        top.child("section 'plc'").problem(
+            "timeout_s", f"{plc.timeout_s:g} s per request must be shorter than scan_interval_s "
+            f"({scan:g} s), or one poll cycle could overrun the scan interval")
     if scan is not None and aggregate is not None and aggregate < scan:
         top.problem("aggregate_s", f"{aggregate:g} s is shorter than scan_interval_s ({scan:g} s)")
     if aggregate is not None and calib_every is not None and calib_every < aggregate:
@@ -332,102 +301,6 @@ def _overlaps(p: _Problems, file: str, placed: list[tuple[str, str, int, int]]) 
             widest = (name, space, start, end)
 
 
-_ADV_KEYS = ("register", "start", "size", "byte_order", "fields", "status_bits")
-_FIELD_KEYS = ("offset", "type", "unit", "description")
-
-
-def _advisory(sec: _Section) -> AdvisoryConfig | None:
-    if not sec.mapping():
-        return None
-    sec.keys(_ADV_KEYS, required=("register", "start", "size", "byte_order", "fields"))
-    n0 = sec.count()
-    register = sec.choice("register", REGISTER_SPACES)
-    if register == "input":
-        sec.problem("register", "'input' registers cannot be written; the block must be holding")
-    start = sec.integer("start", lo=0, hi=65535)
-    size = sec.integer("size", lo=1, hi=MAX_WRITE_COUNT)
-    if start is not None and size is not None and start + size > 65536:
-        sec.problem("size", f"block {start}..{start + size - 1} runs past register 65535")
-    byte_order = sec.choice("byte_order", BYTE_ORDERS)
-    fields = _advisory_fields(sec, size)
-    bits = _status_bits(sec, fields)
-    if sec.count() != n0:
-        return None
-    return AdvisoryConfig(register=register, start=start, size=size, byte_order=byte_order,
-                          fields=fields, status_bits=bits)
-
-
-def _advisory_fields(sec: _Section, size: int | None) -> tuple[AdvisoryField, ...]:
-    raw = sec.data.get("fields")
-    if "fields" in sec.data and (not isinstance(raw, dict) or not raw):
-        sec.problem("fields", "expected a non-empty mapping of field name -> keys")
-        return ()
-    fields: list[AdvisoryField] = []
-    for name, body in (raw or {}).items():
-        where = f"advisory field {name!r}" if not isinstance(name, str) else f"advisory field '{name}'"
-        fsec = _Section(sec.p, sec.file, where, body)
-        if not isinstance(name, str) or not _NAME.match(name) or name == "status_bits":
-            fsec.problem(None, "field names must be identifiers (letters, digits, _), "
-                         "not 'status_bits'")
-            continue
-        if not fsec.mapping():
-            continue
-        fsec.keys(_FIELD_KEYS, required=("offset", "type"))
-        n0 = fsec.count()
-        offset = fsec.integer("offset", lo=0)
-        type_ = fsec.choice("type", TYPES)
-        unit = fsec.string("unit", default="")
-        desc = fsec.string("description", default="", allow_empty=True)
-        if offset is not None and type_ and size is not None:
-            last = offset + register_count(type_) - 1
-            if offset >= size:
-                fsec.problem("offset", f"{offset} is outside the block (size {size})")
-            elif last >= size:
-                fsec.problem("offset", f"{type_} at offset {offset} crosses the block's end "
-                             f"(needs offsets {offset}..{last}, size {size})")
-        if fsec.count() == n0:
-            fields.append(AdvisoryField(name, offset, type_, unit, desc))
-    widest: AdvisoryField | None = None
-    for f in sorted(fields, key=lambda f: f.offset):
-        if widest is not None and f.offset < widest.offset + widest.count:
-            sec.p.add(sec.file, f"advisory field '{f.name}'", "offset",
-                      f"offsets {f.offset}..{f.offset + f.count - 1} overlap field "
-                      f"'{widest.name}' ({widest.offset}..{widest.offset + widest.count - 1})")
-        if widest is None or f.offset + f.count > widest.offset + widest.count:
-            widest = f
-    for required in ("heartbeat", "status"):
-        f = next((f for f in fields if f.name == required), None)
-        if raw and isinstance(raw, dict) and required not in raw:
-            sec.problem("fields", f"field '{required}' (uint16) is required")
-        elif f is not None and f.type != "uint16":
-            sec.p.add(sec.file, f"advisory field '{required}'", "type",
-                      f"must be uint16, got {f.type}")
-    return tuple(sorted(fields, key=lambda f: f.offset))
-
-
-def _status_bits(sec: _Section, fields) -> tuple[tuple[int, str], ...]:
-    raw = sec.data.get("status_bits", {})
-    if raw is None:
-        raw = {}
-    if not isinstance(raw, dict):
-        sec.problem("status_bits", "expected a mapping of bit number (0..15) -> name")
-        return ()
-    bits, seen = [], {}
-    for bit, name in raw.items():
-        if isinstance(bit, bool) or not isinstance(bit, int) or not 0 <= bit <= 15:
-            sec.problem("status_bits", f"bit {bit!r} is outside 0..15")
-            continue
-        if not isinstance(name, str) or not _NAME.match(name):
-            sec.problem("status_bits", f"bit {bit}: name {name!r} is not an identifier")
-            continue
-        if name in seen:
-            sec.problem("status_bits", f"bit {bit}: name {name!r} already used by bit {seen[name]}")
-            continue
-        seen[name] = bit
-        bits.append((bit, name))
-    return tuple(sorted(bits))
-
-
 def _advisory_vs_tags(p, gw_file, adv: AdvisoryConfig, tags, tags_path) -> None:
     for tag in tags:
         if tag.register == adv.register and tag.address < adv.end and adv.start < tag.end:
@@ -520,6 +393,10 @@ class _Section:
 
     def problem(self, key: Any, msg: str) -> None:
         self.p.add(self.file, self.where, key, msg)
+
+    def child(self, where: str, data: Any = _MISSING) -> _Section:
+        """A section of the same file (e.g. one advisory field)."""
+        return _Section(self.p, self.file, where, data)
 
     def count(self) -> int:
         return len(self.p.lines)

@@ -144,6 +144,9 @@ CASES = {
                    ["config/tags.yaml: tag 'N_LS': key 'scale': must not be 0"]),
     "max age": ("tags.yaml", lambda d: d["tags"]["N_LS"].update(max_age_s=0),
                 ["config/tags.yaml: tag 'N_LS': key 'max_age_s': must be > 0, got 0"]),
+    "max age below scan": ("tags.yaml", lambda d: d["tags"]["N_HS"].update(max_age_s=4),
+                           ["config/tags.yaml: tag 'N_HS': key 'max_age_s': 4 s is shorter than "
+                            "scan_interval_s (5 s) of config/gateway.yaml; the value would always be stale"]),
     "tag name": ("tags.yaml", lambda d: d["tags"].update({"timestamp": d["tags"].pop("cip")}),
                  ["config/tags.yaml: tag 'timestamp': tag names must be identifiers (letters, "
                   "digits, _) and not 'timestamp'"]),

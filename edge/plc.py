@@ -202,11 +202,9 @@ class PlcClient:
             raise err
         self._client, self._lost = client, lost
         self._failures, self._next_attempt = 0, -math.inf
-        if self._failing:
-            log.warning("PLC %s:%s: connected again", self.plc.host, self.plc.port)
-        else:
-            log.info("PLC %s:%s: connected", self.plc.host, self.plc.port)
-        self._failing = False
+        # recovery is declared when the PLC answers, not when TCP connects (see _execute)
+        (log.debug if self._failing else log.info)(
+            "PLC %s:%s: connected", self.plc.host, self.plc.port)
 
     async def ensure_connected(self, timeout: float | None = None) -> bool:
         """True when connected, connecting first if the back-off allows it."""
@@ -281,11 +279,11 @@ class PlcClient:
         except (ModbusException, asyncio.TimeoutError) as exc:
             self._lose("protocol error", f"{where}: {exc}")
             raise PlcCommError("protocol error", f"{where}: {exc}") from exc
-        if reply.isError():
-            raise PlcExceptionReply(getattr(reply, "exception_code", 0), fc, address, count)
-        if self._failing:
+        if self._failing:  # any answer, an exception reply too, ends a run of failures
             log.warning("PLC %s:%s: answering again", self.plc.host, self.plc.port)
             self._failing = False
+        if reply.isError():
+            raise PlcExceptionReply(getattr(reply, "exception_code", 0), fc, address, count)
         return reply
 
     # ------------------------------------------------------------------------------ reading

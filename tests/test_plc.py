@@ -127,6 +127,15 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+async def silent(reader, writer):
+    """A TCP peer that swallows requests and never answers (a hung PLC gateway)."""
+    try:
+        while await reader.read(1000):
+            pass
+    finally:
+        writer.close()
+
+
 # ------------------------------------------------------------------------------- reading
 
 def test_read_all_decodes_every_tag_and_falls_back_after_exception_2():
@@ -200,13 +209,6 @@ def test_bad_values_are_marked_never_clamped():
 
 
 def test_exception_reply_and_comm_error_are_distinct_channels():
-    async def silent(reader, writer):
-        try:
-            while await reader.read(1000):   # swallow requests, never answer
-                pass
-        finally:
-            writer.close()
-
     async def scenario():
         async with plant_server() as server:
             async with client(server.port) as plc:
@@ -230,6 +232,23 @@ def test_exception_reply_and_comm_error_are_distinct_channels():
     assert reply.code == 2 and "illegal data address" in str(reply)
     assert still_connected
     assert comm.reason == "timeout" and not after     # a timed-out link is dropped and re-made
+
+
+def test_a_silent_plc_is_logged_loudly_once(caplog):
+    async def scenario():
+        srv = await asyncio.start_server(silent, "127.0.0.1", 0)
+        try:
+            async with client(srv.sockets[0].getsockname()[1], timeout_s=0.1, budget=0.3) as plc:
+                return [await plc.read_all() for _ in range(3)]
+        finally:
+            srv.close()
+            await srv.wait_closed()
+
+    with caplog.at_level(logging.DEBUG, logger="edge.plc"):
+        results = run(scenario())
+    assert [r.comm_error for r in results] == ["timeout"] * 3
+    mine = [r for r in caplog.records if r.name == "edge.plc" and "timeout" in r.message]
+    assert [r.levelno for r in mine] == [logging.WARNING, logging.DEBUG, logging.DEBUG]
 
 
 def test_connection_lost_mid_request():
@@ -301,8 +320,8 @@ def test_connection_refused_then_backoff_then_recovery(caplog):
     assert recovered.comm_error is None and all(v.ok for v in recovered.values.values())
     failed = [r for r in caplog.records if "connect failed" in r.message]
     assert [r.levelno for r in failed] == [logging.WARNING] + [logging.DEBUG] * 4
-    assert any(r.levelno == logging.WARNING and "connected again" in r.message
-               for r in caplog.records)
+    assert [r.message for r in caplog.records if r.levelno == logging.WARNING
+            and "answering again" in r.message] == [f"PLC 127.0.0.1:{port}: answering again"]
 
 
 # ------------------------------------------------------------------------------- writing

@@ -143,7 +143,10 @@ class Plant:
         self.truth_records: list[dict] = []
         self.steady = self._steady_state()
         self._x = self._vector(self.steady.values)   # lagged state: start in steady state
-        self.measured: dict[str, float] = {}
+        self._zero_when_off = np.array([INDEX[n] for n in ("N_LS", "N_HS", "W_LS", "W_HS",
+                                                             "V_source", "V_sink")])
+        self.record_truth = True                     # export computes truth itself
+        self.noisy = self._x.copy()
         self._emit()
 
     # ------------------------------------------------------------------------------ time ----
@@ -183,17 +186,21 @@ class Plant:
         target = self._vector(self.steady.values)
         self._x = target + (self._x - target) * self._alpha
         self._emit()
-        if self.k % self._truth_every == 0:
+        if self.record_truth and self.k % self._truth_every == 0:
             self.truth_records.append(self.truth())
 
     def _emit(self) -> None:
         noisy = self._x + self._sigma * self._noise_rng.standard_normal(len(NAMES))
-        if not self.running:   # a stopped machine reads exact zeros on speed and power
-            for n in ("N_LS", "N_HS", "W_LS", "W_HS", "V_source", "V_sink"):
-                i = INDEX[n]
-                if self._x[i] < 0.5:
-                    noisy[i] = 0.0
-        self.measured = dict(zip(NAMES, noisy.tolist()))
+        if not self.running:   # a stopped machine reads exact zeros on speed, power and flow
+            z = self._zero_when_off
+            noisy[z] = np.where(self._x[z] < 0.5, 0.0, noisy[z])
+        self.noisy = noisy
+
+    @property
+    def measured(self) -> dict[str, float]:
+        """Every sensor after the last tick [engineering units], noise included, before the
+        register quantization and before faults."""
+        return dict(zip(NAMES, self.noisy.tolist()))
 
     def _events(self, t: float) -> None:
         if self.cip_window is None and t >= self.cip_schedule.next_start:

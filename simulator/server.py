@@ -320,6 +320,18 @@ class PlantSimulator:
         if not self._stopping:
             await self._listen(self.port)
 
+    def add_fault(self, spec) -> None:
+        """A FaultSpec from config/CLI: switched on now, or scheduled when it has at_h."""
+        if spec.at_h is None:
+            self.faults.enable_spec(spec)
+        else:
+            self._schedule.append((spec, False))
+
+    @property
+    def loop_task(self) -> asyncio.Task | None:
+        """The plant loop task (done only after stop() or a failure)."""
+        return self._task
+
     def _on_fault(self, kind: str, tag: str | None, on: bool) -> None:
         if kind != "restart":
             return

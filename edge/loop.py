@@ -1,0 +1,419 @@
+"""The gateway daemon: startup -> main loop -> shutdown (SPEC 7.2, issue #5 item 3).
+
+One scan cycle, every ``scan_interval_s`` on the monotonic clock:
+
+1. read every tag in the planned grouped requests (``PlcClient.read_all``; never raises);
+2. feed the scan to the ``Aggregator`` (validity, max age, frozen life counter); every period it
+   closes becomes a one-minute sample, processed on the measured side and stored (worker thread);
+3. when a calibration is due on the sample clock and none is running, start one in a worker
+   thread (fouling calibration on the latest usable window, then the set-point optimization);
+   it never blocks the event loop, and the cycle goes on while it runs;
+4. when a calibration has finished, take its advice (or keep the last good advice, with its age,
+   and set the failure bit);
+5. write the whole advisory block - heartbeat, status word, values - in ONE FC16 request.
+
+The sample clock is the wall clock, or with ``time_source="plc"`` the PLC's clock register (plant
+time: the accelerated simulator, or a PLC whose clock the plant's history should follow).
+Freshness (max age, frozen life counter) is always judged on the monotonic clock.
+
+Status bits (gateway.yaml ``advisory.status_bits``; names are what matters, numbers are config):
+
+- ``data_stale``: a tag has not been read good for its ``max_age_s``, or the life counter froze;
+- ``heat_pump_off``: the running flag reads 0;
+- ``cip_detected``: the CIP flag reads 1;
+- ``calibration_failed``: no fouling calibration yet (none restored from the state directory),
+  or the last one failed;
+- ``model_infeasible``: the last set-point optimization failed (no feasible point in the window);
+- ``comm_fault``: the last poll got no usable answer, or one did since the previous successful
+  advisory write (so an HMI sees the bit after a PLC restart, for one cycle at least);
+- ``advice_stale``: the values are from an earlier calibration: the last attempt failed, or the
+  advice is older than 1.5 calibration intervals (e.g. not enough usable data: plant off, CIP).
+"""
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+from edge.advisory import encode_advisory
+from edge.aggregate import Aggregator, Freshness, Sample, sample_row
+from edge.config import GatewayConfig
+from edge.plc import PlcClient, PlcError, ReadResult
+
+log = logging.getLogger(__name__)
+
+TIME_SOURCES = ("wall", "plc")
+ADVICE_STALE_INTERVALS = 1.5
+STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_failed",
+                "model_infeasible", "comm_fault", "advice_stale")
+# advisory fields the loop fills itself; an advisor provides the others
+LOOP_FIELDS = ("heartbeat", "status", "last_update", "advice_age_s")
+
+
+@dataclass(frozen=True)
+class Advice:
+    """The outcome of one calibration cycle.
+
+    t : end of the window the advice was computed on [epoch s, sample clock]
+    values : advisory field name -> value in the block's unit (empty when nothing new)
+    calibration_ok, optimization_ok : outcome of the two steps (False: the step failed)
+    message : why a step failed or was skipped ('' when all went well)
+    detail : report for the history (NRMSE per target, iterations, run time, ...)
+    skipped : nothing was attempted (e.g. too few usable samples): no failure bit
+    """
+    t: float
+    values: Mapping[str, float] = field(default_factory=dict)
+    calibration_ok: bool = True
+    optimization_ok: bool = True
+    message: str = ""
+    detail: Mapping[str, Any] = field(default_factory=dict)
+    skipped: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.calibration_ok and self.optimization_ok and not self.skipped
+
+
+class Advisor(Protocol):
+    """What the loop needs from the model side (edge.service.ModelAdvisor is the real one)."""
+
+    def ingest(self, samples: list[Sample]) -> list[dict]:
+        """Measured-side processing and storage of closed one-minute samples (worker thread).
+        Returns the stored rows (tags, derived columns, usable, reason)."""
+
+    def advise(self, t_end: float) -> Advice:
+        """Fouling calibration on the usable window ending at ``t_end``, then the set-point
+        optimization (worker thread). Never raises for model failures: reports them."""
+
+    def restored(self) -> Advice | None:
+        """The last good advice from persisted state, or None (called once at startup)."""
+
+    @property
+    def has_calibration(self) -> bool:
+        """True when a fouling calibration exists (restored or computed)."""
+
+
+@dataclass
+class Snapshot:
+    """What the gateway shows right now (tests and the demo read it)."""
+    cycles: int = 0
+    heartbeat: int = 0
+    writes_ok: int = 0
+    writes_failed: int = 0
+    status_bits: tuple[str, ...] = ()
+    values: dict[str, float] = field(default_factory=dict)
+    sample_time: float | None = None     # sample clock of the last scan
+    samples: int = 0                     # one-minute samples closed since start
+    calibrations: int = 0                # calibration cycles finished (any outcome)
+    advice_time: float | None = None
+    advice_message: str = ""
+    last_scan: dict[str, float | None] = field(default_factory=dict)
+    comm_error: str | None = None
+    errors: int = 0                      # unexpected errors survived (logged with traceback)
+
+
+class Gateway:
+    """The daemon. ``await Gateway(cfg, ...).run()`` runs until ``request_stop()`` or a signal.
+
+    cfg : the loaded configuration (loaded once; nothing re-reads files while running)
+    advisor : the model side (ingest, advise, restored); built by edge.service for production
+    plc : a PlcClient (default: from cfg)
+    time_source : 'wall' (production) or 'plc' (sample clock = the PLC's clock register)
+    clock_tag : the tag that holds the PLC clock (uint32 epoch seconds)
+    monotonic, wall : clocks (injected in tests)
+    install_signals : handle SIGTERM/SIGINT (only in the main thread)
+    shutdown_timeout_s : how long shutdown waits for a running calibration
+    """
+
+    def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
+                 time_source: str = "wall", clock_tag: str = "plc_clock",
+                 monotonic: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time, install_signals: bool = True,
+                 shutdown_timeout_s: float = 10.0) -> None:
+        if time_source not in TIME_SOURCES:
+            raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
+        tag_names = {t.name for t in cfg.tags}
+        if time_source == "plc" and clock_tag not in tag_names:
+            raise ValueError(f"time_source 'plc' needs the clock tag {clock_tag!r} in the tag map")
+        self.cfg = cfg
+        self.advisor = advisor
+        self.plc = plc or PlcClient.from_config(cfg)
+        self.time_source, self.clock_tag = time_source, clock_tag
+        self._mono, self._wall = monotonic, wall
+        self.install_signals = install_signals
+        self.shutdown_timeout_s = shutdown_timeout_s
+        configured = {name for _, name in cfg.advisory.status_bits}
+        self._bits = tuple(n for n in STATUS_NAMES if n in configured)
+        self._fields = {f.name for f in cfg.advisory.fields}
+        self.aggregator = Aggregator(
+            cfg.tags, cfg.aggregate_s, life_counter=cfg.life_counter_tag,
+            exclude=(clock_tag,) if clock_tag in tag_names else (), t_start=monotonic())
+        self.snapshot = Snapshot()
+        self.changed = asyncio.Event()   # set after every cycle (tests and the demo wait on it)
+        self._stop = asyncio.Event()
+        self._advice: Advice | None = None            # last good advice
+        self._last_attempt: Advice | None = None      # last finished calibration cycle
+        self._calibration: asyncio.Future | None = None
+        self._calibration_due = -math.inf             # sample clock
+        self._comm_since_write = False
+        self._last_sample_end: float | None = None
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._saved_signals: dict[int, Any] = {}
+        self.exit_code = 0
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    async def run(self) -> int:
+        """startup -> main loop -> shutdown. Returns the exit code (0: stopped on request)."""
+        await self.startup()
+        try:
+            await self.main_loop()
+        finally:
+            await self.shutdown()
+        return self.exit_code
+
+    def request_stop(self) -> None:
+        """Ask the loop to stop after the current cycle (safe from signal handlers)."""
+        if not self._stop.is_set():
+            log.info("stop requested")
+        self._stop.set()
+
+    async def startup(self) -> None:
+        self._executor = concurrent.futures.ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="hp-edge-calibration")
+        if self.install_signals:
+            self._install_signal_handlers()
+        restored = await asyncio.to_thread(self.advisor.restored)
+        if restored is not None:
+            self._advice = restored
+            self._calibration_due = restored.t + self.cfg.calibration_interval_s
+            log.info("restored advice of %s", _fmt_time(restored.t))
+        log.info("gateway started: PLC %s:%s, scan %g s, sample clock %s, optimizer %s",
+                 self.plc.plc.host, self.plc.plc.port, self.cfg.scan_interval_s,
+                 self.time_source, self.cfg.optimizer)
+
+    async def shutdown(self) -> None:
+        """Wait (bounded) for a running calibration, close the PLC connection, restore signals."""
+        if self._calibration is not None and not self._calibration.done():
+            log.info("waiting up to %g s for the running calibration", self.shutdown_timeout_s)
+            try:
+                await asyncio.wait_for(asyncio.shield(self._calibration), self.shutdown_timeout_s)
+                self._collect_calibration()
+            except asyncio.TimeoutError:
+                log.warning("calibration still running after %g s: abandoned (its state is "
+                            "written atomically, nothing half-written remains)",
+                            self.shutdown_timeout_s)
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+        await self.plc.close()
+        self._restore_signal_handlers()
+        log.info("gateway stopped after %d cycles", self.snapshot.cycles)
+
+    def _install_signal_handlers(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            self._saved_signals[sig] = signal.getsignal(sig)
+            loop.add_signal_handler(sig, self.request_stop)
+
+    def _restore_signal_handlers(self) -> None:
+        if not self._saved_signals:
+            return
+        loop = asyncio.get_running_loop()
+        for sig, previous in self._saved_signals.items():
+            loop.remove_signal_handler(sig)
+            signal.signal(sig, previous)
+        self._saved_signals.clear()
+
+    # ------------------------------------------------------------------------- main loop
+
+    async def main_loop(self) -> None:
+        period = self.cfg.scan_interval_s
+        next_at = self._mono()
+        while not self._stop.is_set():
+            await self.cycle()
+            next_at += period
+            now = self._mono()
+            if now > next_at:   # overran (slow PLC, slow disk): skip the missed slots
+                missed = math.floor((now - next_at) / period) + 1
+                log.debug("cycle overran by %.3f s; skipping %d slot(s)", now - next_at + period,
+                          missed)
+                next_at += missed * period
+            try:
+                await asyncio.wait_for(self._stop.wait(), max(0.0, next_at - self._mono()))
+            except asyncio.TimeoutError:
+                pass
+
+    async def cycle(self) -> None:
+        """One scan cycle: read, aggregate, store, calibrate (in the background), write."""
+        result = await self.plc.read_all()
+        t_mono = self._mono()
+        t_sample = self._sample_time(result)
+        if result.comm_error is not None:
+            self._comm_since_write = True
+        samples = self.aggregator.add(t_sample, t_mono, result.values, result.comm_error)
+        if samples:
+            await self._ingest(samples)
+        self._collect_calibration()
+        self._maybe_start_calibration()
+        fresh = self.aggregator.freshness(t_mono)
+        bits = self._status_bits(result, fresh)
+        await self._write(bits, t_sample)
+        snap = self.snapshot
+        snap.cycles += 1
+        snap.sample_time = t_sample if t_sample is not None else snap.sample_time
+        snap.comm_error = result.comm_error
+        snap.last_scan = {n: v.value for n, v in result.values.items()}
+        self.changed.set()
+        self.changed = asyncio.Event()
+
+    def _sample_time(self, result: ReadResult) -> float | None:
+        if self.time_source == "wall":
+            return result.timestamp
+        v = result.values.get(self.clock_tag)
+        return v.value if v is not None and v.bad is None else None
+
+    async def _ingest(self, samples: list[Sample]) -> None:
+        try:
+            await asyncio.to_thread(self.advisor.ingest, samples)
+        except Exception as exc:  # noqa: BLE001 - disk full, sqlite, a bad sample: log, go on
+            self.snapshot.errors += 1
+            log.exception("processing or storing %d sample(s) failed: %s", len(samples), exc)
+        self.snapshot.samples += len(samples)
+        self._last_sample_end = max(s.timestamp for s in samples) + self.cfg.aggregate_s
+
+    # ----------------------------------------------------------------------- calibration
+
+    def _maybe_start_calibration(self) -> None:
+        t_end = self._last_sample_end
+        if t_end is None or (self._calibration is not None and not self._calibration.done()):
+            return
+        if t_end < self._calibration_due:
+            return
+        loop = asyncio.get_running_loop()
+        self._calibration = loop.run_in_executor(self._executor, self.advisor.advise, t_end)
+        self._calibration_t = t_end
+
+    def _collect_calibration(self) -> None:
+        fut = self._calibration
+        if fut is None or not fut.done():
+            return
+        self._calibration = None
+        t_end = self._calibration_t
+        try:
+            adv: Advice = fut.result()
+        except Exception as exc:  # noqa: BLE001 - a bug in a solver must not stop the daemon
+            self.snapshot.errors += 1
+            log.exception("calibration cycle raised: %s", exc)
+            adv = Advice(t_end, calibration_ok=False, optimization_ok=False,
+                         message=f"{type(exc).__name__}: {exc}")
+        if adv.skipped:
+            # nothing attempted (too few usable samples): look again at the next sample
+            log.info("calibration at %s skipped: %s", _fmt_time(t_end), adv.message)
+            self.snapshot.advice_message = adv.message
+            return
+        self._calibration_due = t_end + self.cfg.calibration_interval_s
+        self._last_attempt = adv
+        self.snapshot.calibrations += 1
+        self.snapshot.advice_message = adv.message
+        if adv.ok:
+            self._advice = adv
+            log.info("advice of %s: %s", _fmt_time(adv.t), _fmt_values(adv.values))
+        else:
+            log.warning("calibration cycle of %s failed, keeping the last good advice: %s",
+                        _fmt_time(t_end), adv.message)
+
+    # ----------------------------------------------------------------------------- output
+
+    def _status_bits(self, result: ReadResult, fresh: Freshness) -> set[str]:
+        bits: set[str] = set()
+        if fresh.data_stale or result.comm_error is not None:
+            bits.add("data_stale")
+        running = result.values.get("running")
+        if running is not None and running.bad is None and running.value < 0.5:
+            bits.add("heat_pump_off")
+        cip = result.values.get("cip")
+        if cip is not None and cip.bad is None and cip.value > 0.5:
+            bits.add("cip_detected")
+        last = self._last_attempt
+        if not self.advisor.has_calibration or (last is not None and not last.calibration_ok):
+            bits.add("calibration_failed")
+        if last is not None and last.calibration_ok and not last.optimization_ok:
+            bits.add("model_infeasible")
+        if result.comm_error is not None or self._comm_since_write:
+            bits.add("comm_fault")
+        adv = self._advice
+        if adv is not None:
+            now = self.snapshot.sample_time if self.snapshot.sample_time is not None else adv.t
+            too_old = now - adv.t > ADVICE_STALE_INTERVALS * self.cfg.calibration_interval_s
+            if too_old or (last is not None and not last.ok):
+                bits.add("advice_stale")
+        return {b for b in bits if b in self._bits}
+
+    def _values(self, t_sample: float | None) -> dict[str, float]:
+        adv = self._advice
+        values: dict[str, float] = {}
+        if adv is not None:
+            values.update((k, float(v)) for k, v in adv.values.items()
+                          if k in self._fields and k not in LOOP_FIELDS)
+            now = t_sample if t_sample is not None else self.snapshot.sample_time or adv.t
+            if "last_update" in self._fields:
+                values["last_update"] = int(max(0.0, adv.t))
+            if "advice_age_s" in self._fields:
+                values["advice_age_s"] = int(min(max(0.0, now - adv.t), 2**32 - 1))
+        return values
+
+    async def _write(self, bits: set[str], t_sample: float | None) -> None:
+        snap = self.snapshot
+        snap.heartbeat = (snap.heartbeat + 1) % 65536
+        values = self._values(t_sample)
+        snap.values, snap.status_bits = values, tuple(sorted(bits, key=STATUS_NAMES.index))
+        snap.advice_time = self._advice.t if self._advice is not None else None
+        try:
+            words = encode_advisory(self.cfg.advisory, values, bits, snap.heartbeat)
+        except ValueError as exc:   # a value that does not fit its register: a bug, say so
+            log.error("advisory block not encodable, writing status only: %s", exc)
+            words = encode_advisory(self.cfg.advisory, {}, bits, snap.heartbeat)
+        if not self.plc.connected:
+            snap.writes_failed += 1
+            return
+        try:
+            await self.plc.write_advisory(words)
+        except PlcError as exc:
+            snap.writes_failed += 1
+            self._comm_since_write = True
+            log.debug("advisory write failed: %s", exc)
+            return
+        snap.writes_ok += 1
+        self._comm_since_write = False   # this write carried the comm_fault bit, if it was due
+
+    # ------------------------------------------------------------------------ for callers
+
+    async def wait_until(self, predicate: Callable[[Snapshot], bool], timeout: float) -> Snapshot:
+        """Wait (bounded) until ``predicate(snapshot)`` holds after a cycle."""
+        async def _wait() -> Snapshot:
+            while not predicate(self.snapshot):
+                await self.changed.wait()
+            return self.snapshot
+        return await asyncio.wait_for(_wait(), timeout)
+
+
+def with_overrides(cfg: GatewayConfig, **kw) -> GatewayConfig:
+    """A copy of ``cfg`` with fields replaced (the demo and tests shorten the cadence)."""
+    return replace(cfg, **kw)
+
+
+def _fmt_time(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
+
+
+def _fmt_values(values: Mapping[str, float]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in values.items() if isinstance(v, (int, float)))

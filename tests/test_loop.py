@@ -1,0 +1,336 @@
+"""The gateway loop against a fake PLC and a fake advisor: one FC16 write per cycle, status bits,
+last good advice kept on failure, calibration off the event loop, signals and shutdown."""
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from edge.advisory import decode_advisory
+from edge.config import load_config
+from edge.loop import Advice, Gateway
+from edge.plc import PlcCommError, ReadResult, TagValue
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    c = load_config(ROOT / "config" / "gateway.yaml", load_plant=False)
+    return replace(c, scan_interval_s=0.02, calibration_interval_s=300.0)
+
+
+GOOD = {"T_sink_in": 40.0, "T_sink_out": 68.0, "T_source_in": 24.0, "T_source_out": 18.0,
+        "V_sink": 62.0, "V_source": 192.0, "p_source_in": 2.5, "p_source_out": 2.05,
+        "T_suc_LS": 16.0, "T_dis_LS": 80.0, "T_suc_HS": 40.0, "T_dis_HS": 100.0, "T_c": 65.0,
+        "T_e": 15.0, "p_suc_LS": 6.3, "p_dis_LS": 15.0, "p_suc_HS": 15.0, "p_dis_HS": 29.0,
+        "W_LS": 170.0, "W_HS": 180.0, "N_LS": 1300.0, "N_HS": 1400.0, "running": 1.0,
+        "cip": 0.0, "p_m_sp": 16.0}
+
+
+class FakePlc:
+    """Plays the PLC: every read advances a fake clock by one minute of plant time."""
+
+    def __init__(self, cfg, t0: float = 1_709_251_200.0):
+        self.plc, self.advisory = cfg.plc, cfg.advisory
+        self.tags = cfg.tags
+        self.t = t0
+        self.life = 0
+        self.connected = True
+        self.fail_reads = 0          # the next n reads get no answer
+        self.frozen = False
+        self.override: dict[str, TagValue] = {}
+        self.writes: list[list[int]] = []
+        self.closed = False
+
+    async def read_all(self) -> ReadResult:
+        self.t += 60.0
+        if self.fail_reads:
+            self.fail_reads -= 1
+            self.connected = False
+            vals = {t.name: TagValue(t.name, None, "connection lost") for t in self.tags}
+            return ReadResult(vals, self.t, 0.0, 1, "connection lost")
+        self.connected = True
+        if not self.frozen:
+            self.life += 1
+        vals = {n: TagValue(n, v) for n, v in GOOD.items()}
+        vals["plc_clock"] = TagValue("plc_clock", self.t)
+        vals["life_counter"] = TagValue("life_counter", float(self.life))
+        vals.update(self.override)
+        return ReadResult(vals, self.t, 0.0, 2, None)
+
+    async def write_advisory(self, words):
+        if not self.connected:
+            raise PlcCommError("not connected")
+        assert len(words) == self.advisory.size
+        self.writes.append(list(words))
+
+    async def close(self):
+        self.closed = True
+
+    def last(self) -> dict:
+        return decode_advisory(self.advisory, self.writes[-1])
+
+
+class FakeAdvisor:
+    def __init__(self, outcomes=(), delay_s: float = 0.0, calibrated: bool = False):
+        self.outcomes = list(outcomes)
+        self.delay_s = delay_s
+        self.ingested = []
+        self.calls = []
+        self.threads = set()
+        self._calibrated = calibrated
+
+    def ingest(self, samples):
+        self.threads.add(threading.current_thread().name)
+        self.ingested.extend(samples)
+        return []
+
+    def advise(self, t_end):
+        self.threads.add(threading.current_thread().name)
+        self.calls.append(t_end)
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        out = self.outcomes.pop(0) if self.outcomes else "skip"
+        if out == "ok":
+            self._calibrated = True
+            return Advice(t_end, {"R_th_f": 3e-3, "p_m_sp_rec": 17.5, "CF_dp_f": 1.1})
+        if out == "calibration":
+            return Advice(t_end, calibration_ok=False, optimization_ok=False, message="boom")
+        if out == "optimization":
+            return Advice(t_end, {"R_th_f": 9e-3}, optimization_ok=False, message="no optimum")
+        if out == "skip":
+            return Advice(t_end, skipped=True, message="too few samples")
+        raise RuntimeError("solver bug")
+
+    def restored(self):
+        return None
+
+    @property
+    def has_calibration(self):
+        return self._calibrated
+
+
+def gateway(cfg, advisor=None, **kw):
+    plc = kw.pop("plc", None) or FakePlc(cfg)
+    gw = Gateway(cfg, advisor or FakeAdvisor(), plc=plc, time_source="plc",
+                 install_signals=False, **kw)
+    return gw, plc
+
+
+async def cycles(gw, n):
+    for _ in range(n):
+        await gw.cycle()
+        await asyncio.sleep(0)
+
+
+def run(coro, timeout=20.0):
+    return asyncio.run(asyncio.wait_for(coro, timeout))
+
+
+def test_one_whole_block_write_per_cycle_and_heartbeat(cfg):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        await cycles(gw, 5)
+        await gw.shutdown()
+        return gw, plc
+    gw, plc = run(go())
+    assert len(plc.writes) == 5 and all(len(w) == cfg.advisory.size for w in plc.writes)
+    beats = [decode_advisory(cfg.advisory, w)["heartbeat"] for w in plc.writes]
+    assert beats == [1, 2, 3, 4, 5]
+    assert plc.closed
+    first = plc.last()
+    assert "calibration_failed" in first["status_bits"]      # none yet
+    assert first["R_th_f"] != first["R_th_f"]                 # NaN: no value yet
+
+
+def test_advice_written_in_the_cycle_it_arrives_and_age_counts(cfg):
+    async def go():
+        adv = FakeAdvisor(["ok"])
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        for _ in range(30):
+            await cycles(gw, 1)
+            if adv.calls:
+                break
+        await asyncio.sleep(0.05)          # the worker thread returns
+        await cycles(gw, 1)
+        got = plc.last()
+        await cycles(gw, 2)
+        later = plc.last()
+        await gw.shutdown()
+        return adv, got, later
+    adv, got, later = run(go())
+    assert got["R_th_f"] == pytest.approx(3e-3) and got["p_m_sp_rec"] == pytest.approx(17.5)
+    assert got["last_update"] == int(adv.calls[0])
+    assert "calibration_failed" not in got["status_bits"]
+    assert later["advice_age_s"] - got["advice_age_s"] == 120       # two plant minutes later
+    assert "hp-edge-calibration_0" in adv.threads
+
+
+async def _advise_until(gw, plc, adv, n_calls):
+    for _ in range(2000):
+        await cycles(gw, 1)
+        if len(adv.calls) >= n_calls and gw._calibration is None:
+            return
+        await asyncio.sleep(0.001)
+    raise AssertionError("calibration did not run")
+
+
+def test_failed_calibration_keeps_last_good_advice_and_sets_bits(cfg):
+    async def go():
+        adv = FakeAdvisor(["ok", "calibration", "optimization", "crash"])
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        out = []
+        for k in range(1, 5):
+            await _advise_until(gw, plc, adv, k)
+            out.append(plc.last())
+        await gw.shutdown()
+        return gw, out
+    gw, (ok, cal, opt, crash) = run(go())
+    assert ok["R_th_f"] == pytest.approx(3e-3) and ok["status_bits"] == []
+    assert cal["R_th_f"] == pytest.approx(3e-3)          # kept
+    assert {"calibration_failed", "advice_stale"} <= set(cal["status_bits"])
+    assert cal["advice_age_s"] > 0
+    assert opt["R_th_f"] == pytest.approx(3e-3)          # all or nothing: the 9e-3 is not shown
+    assert {"model_infeasible", "advice_stale"} <= set(opt["status_bits"])
+    assert "calibration_failed" not in opt["status_bits"]
+    assert {"calibration_failed", "advice_stale"} <= set(crash["status_bits"])
+    assert gw.snapshot.errors == 1
+
+
+def test_skipped_calibration_is_not_a_failure_and_retries_next_sample(cfg):
+    async def go():
+        adv = FakeAdvisor(["skip", "skip", "ok"])
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        await _advise_until(gw, plc, adv, 3)
+        await gw.shutdown()
+        return adv, plc
+    adv, plc = run(go())
+    assert adv.calls[1] - adv.calls[0] <= 120      # retried on the next samples, not an interval
+    assert plc.last()["R_th_f"] == pytest.approx(3e-3)
+
+
+def test_comm_fault_is_shown_after_the_link_is_back(cfg):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        await cycles(gw, 2)
+        plc.fail_reads = 3
+        await cycles(gw, 3)
+        n_during = len(plc.writes)
+        await cycles(gw, 1)
+        back = plc.last()
+        await cycles(gw, 1)
+        after = plc.last()
+        await gw.shutdown()
+        return n_during, back, after
+    n_during, back, after = run(go())
+    assert n_during == 2                                  # nothing written while down
+    assert "comm_fault" in back["status_bits"] and back["heartbeat"] == 6
+    assert "comm_fault" not in after["status_bits"]
+
+
+def test_frozen_life_counter_sets_stale_and_no_samples_come_from_it(cfg):
+    fast = replace(cfg, tags=tuple(replace(t, max_age_s=0.05) for t in cfg.tags))
+
+    async def go():
+        adv = FakeAdvisor()
+        gw, plc = gateway(fast, adv)
+        await gw.startup()
+        await cycles(gw, 3)
+        n0 = len(adv.ingested)
+        plc.frozen = True
+        plc.override = {"T_source_in": TagValue("T_source_in", 49.0)}   # frozen garbage
+        for _ in range(10):
+            await cycles(gw, 1)
+            await asyncio.sleep(0.01)
+        frozen = plc.last()
+        got = adv.ingested[n0:]
+        plc.frozen, plc.override = False, {}
+        await cycles(gw, 3)
+        await gw.shutdown()
+        return frozen, got, plc.last()
+    frozen, got, after = run(go())
+    assert "data_stale" in frozen["status_bits"]
+    assert all(s.values["T_source_in"] != 49.0 for s in got)
+    assert all(s.quality == "frozen" for s in got[1:])
+    assert "data_stale" not in after["status_bits"]
+
+
+def test_bad_values_flags_off_and_cip(cfg):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        plc.override = {"running": TagValue("running", 0.0), "cip": TagValue("cip", 1.0),
+                        "T_e": TagValue("T_e", None, "nan")}
+        await cycles(gw, 2)
+        await gw.shutdown()
+        return plc.last()
+    last = run(go())
+    assert {"heat_pump_off", "cip_detected"} <= set(last["status_bits"])
+
+
+def test_calibration_never_blocks_the_event_loop(cfg):
+    async def go():
+        adv = FakeAdvisor(["ok"], delay_s=0.5)
+        gw, plc = gateway(cfg, adv)
+        task = asyncio.create_task(gw.run())
+        await gw.wait_until(lambda s: bool(adv.calls), 5.0)
+        hb0 = gw.snapshot.heartbeat
+        await gw.wait_until(lambda s: s.heartbeat >= hb0 + 5, 0.45)   # while the solver runs
+        assert gw._calibration is not None and not gw._calibration.done()
+        await gw.wait_until(lambda s: s.calibrations == 1, 5.0)
+        gw.request_stop()
+        return await task
+    assert run(go()) == 0
+
+
+def test_sigterm_stops_gracefully_and_restores_the_previous_handler(cfg):
+    seen = []
+
+    def previous(signum, frame):
+        seen.append(signum)
+
+    async def go():
+        gw, plc = gateway(cfg)
+        gw.install_signals = True
+        task = asyncio.create_task(gw.run())
+        await gw.wait_until(lambda s: s.heartbeat >= 3, 5.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return await task, plc
+
+    old = signal.signal(signal.SIGTERM, previous)
+    try:
+        rc, plc = run(go())
+        assert rc == 0 and plc.closed
+        assert signal.getsignal(signal.SIGTERM) is previous
+        assert seen == []          # our handler took it, not the previous one
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def test_shutdown_does_not_wait_forever_for_a_stuck_solver(cfg):
+    async def go():
+        adv = FakeAdvisor(["ok"], delay_s=1.0)
+        gw, plc = gateway(cfg, adv, shutdown_timeout_s=0.05)
+        task = asyncio.create_task(gw.run())
+        await gw.wait_until(lambda s: bool(adv.calls), 5.0)
+        gw.request_stop()
+        return await asyncio.wait_for(task, 0.8), plc
+    rc, plc = run(go())
+    assert rc == 0 and plc.closed
+
+
+def test_arguments_are_checked(cfg):
+    with pytest.raises(ValueError):
+        Gateway(cfg, FakeAdvisor(), plc=FakePlc(cfg), time_source="sundial")

@@ -1,6 +1,431 @@
-"""Sub-commands (see edge/cli.py). Keep heavy imports inside the command functions."""
+"""Analysis commands on SCADA history CSVs: calibrate, optimize, fit-surrogate, replay (SPEC §5-6).
+
+History CSVs carry the canonical columns of SPEC §4 with a first column ``timestamp`` (ISO 8601, UTC
+when naive). Rows whose timestamp cannot be read, or that repeat one, are skipped and counted; rows
+with bad values are marked unusable by the measured-side processing and counted per reason. Heavy
+imports (CoolProp, SciPy, pandas) stay inside the command functions.
+"""
 from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+
+from edge.plantfile import DEFAULT_PLANT
+
+DEFAULT_STATE_DIR = "var/state"
 
 
 def register(sub) -> None:
-    """Add this module's sub-commands to the argparse sub-parsers."""
+    cal = sub.add_parser("calibrate", help="calibrate the model on a history CSV (initial or fouling)",
+                         description="Calibrate the model on a window of a history CSV and save the "
+                                     "result as state (SPEC §5).")
+    csub = cal.add_subparsers(dest="kind", metavar="KIND")
+    csub.required = True
+    ini = csub.add_parser("initial", help="CF_DSH, CF_con, CF_SC, CF_eva and the clean pressure drop "
+                                          "on commissioning data",
+                          description="Initial calibration (CF_DSH, CF_con, CF_SC, CF_eva) and the clean "
+                                      "pressure-drop fit on a clean window; default window: the first "
+                                      "usable minutes (calibration.initial.window_minutes, 90).")
+    _common(ini)
+    ini.add_argument("--window", default=None, help="START/END (ISO 8601, UTC when naive)")
+    ini.set_defaults(func=cmd_calibrate_initial)
+    fou = csub.add_parser("fouling", help="R_th,f and CF_dp,f on a window of recent operation",
+                          description="Fouling calibration (R_th,f, CF_dp,f) on the fixed model of the "
+                                      "saved initial calibration.")
+    _common(fou)
+    fou.add_argument("--window", required=True, help="START/END (ISO 8601, UTC when naive)")
+    fou.set_defaults(func=cmd_calibrate_fouling)
+
+    opt = sub.add_parser("optimize", help="COP-optimal p_m set point for a window of a history CSV",
+                         description="Optimal intermediate-pressure set point for a window, with the "
+                                     "adaptive model of the saved calibrations (SPEC §6).")
+    _common(opt)
+    opt.add_argument("--window", required=True, help="START/END (ISO 8601, UTC when naive)")
+    opt.set_defaults(func=cmd_optimize)
+
+    fs = sub.add_parser("fit-surrogate", help="fit the 27-term set-point surrogate on model optima",
+                        description="Fit the p_m,sp surrogate (SPEC §6) on optimization results of the "
+                                    "model over fouling levels and operating points; prints R^2 on the "
+                                    "held-out 30 %% and saves the coefficients.")
+    fs.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    fs.add_argument("--state-dir", default=DEFAULT_STATE_DIR,
+                    help=f"state directory; its initial calibration is used when present ({DEFAULT_STATE_DIR})")
+    fs.add_argument("--out", default=None, help="coefficients file (default: STATE_DIR/surrogate.json)")
+    fs.add_argument("--points-per-level", type=int, default=None,
+                    help="operating points per fouling level (plant.yaml surrogate.points_per_level, 60)")
+    fs.add_argument("--seed", type=int, default=None, help="sampling and split seed")
+    fs.add_argument("--json", action="store_true", help="print JSON")
+    fs.set_defaults(func=cmd_fit_surrogate)
+
+    rp = sub.add_parser("replay", help="replay a history: calibrations, CIP effects, optimal set points",
+                        description="Initial calibration and clean pressure-drop fit on the initial "
+                                    "window, CIP detection, and per window the fouling calibration and "
+                                    "the set-point optimization. Writes DIR/windows.csv, DIR/cip.csv, "
+                                    "DIR/summary.txt and the calibration results.")
+    rp.add_argument("history", help="history CSV (canonical columns, timestamp first)")
+    rp.add_argument("--out", required=True, help="output directory")
+    rp.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    rp.add_argument("--initial-window", default=None,
+                    help="START/END of the clean initial window (default: the first 90 usable minutes)")
+    rp.add_argument("--window-hours", type=float, default=None, help="calibration window length (2 h)")
+    rp.add_argument("--cip-off-minutes", type=float, default=None,
+                    help="a plant stop longer than this counts as a CIP (360)")
+    rp.add_argument("--no-optimize", action="store_true", help="skip the set-point optimization")
+    rp.add_argument("--save-state", default=None, metavar="STATE_DIR",
+                    help="also save the initial, dp_clean and last fouling results as state there")
+    rp.set_defaults(func=cmd_replay)
+
+
+def _common(p) -> None:
+    p.add_argument("data", help="history CSV (canonical columns, timestamp first)")
+    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    p.add_argument("--state-dir", default=DEFAULT_STATE_DIR, help=f"state directory ({DEFAULT_STATE_DIR})")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+
+
+# --------------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------------
+class CommandError(Exception):
+    """A user-facing error: printed as 'hp-edge <cmd>: message', exit code 2."""
+
+
+def _fail(cmd: str, exc: Exception) -> int:
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(f"hp-edge {cmd}: {line}", file=sys.stderr)
+    return 2
+
+
+def _params(path):
+    from edge.plantfile import load_plant
+    return load_plant(path)
+
+
+def parse_window(text: str):
+    """'START/END' -> (start, end) UTC Timestamps."""
+    import pandas as pd
+    parts = text.split("/")
+    if len(parts) != 2 or not all(p.strip() for p in parts):
+        raise CommandError(f"window {text!r}: expected START/END, e.g. 2024-03-01T00:00/2024-03-01T02:00")
+    out = []
+    for p in parts:
+        try:
+            t = pd.Timestamp(p.strip())
+        except ValueError as exc:
+            raise CommandError(f"window {text!r}: cannot read {p!r} as a time ({exc})") from None
+        out.append(t.tz_localize("UTC") if t.tzinfo is None else t.tz_convert("UTC"))
+    if not out[0] < out[1]:
+        raise CommandError(f"window {text!r}: START must be before END")
+    return out[0], out[1]
+
+
+def read_history_csv(path):
+    """(history DataFrame sorted by time with a UTC ``timestamp`` column, skipped rows per reason,
+    non-numeric cells per column)."""
+    import pandas as pd
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except FileNotFoundError:
+        raise CommandError(f"{path}: no such file") from None
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise CommandError(f"{path}: cannot read as CSV: {exc}") from None
+    if "timestamp" not in df.columns:
+        raise CommandError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
+    skipped: dict[str, int] = {}
+    ts = pd.to_datetime(df["timestamp"], utc=True, errors="coerce", format="ISO8601")
+    bad = ts.isna().to_numpy()
+    if bad.any():
+        skipped["bad timestamp"] = int(bad.sum())
+    df = df.loc[~bad].copy()
+    df["timestamp"] = ts[~bad]
+    df = df.sort_values("timestamp", kind="stable")
+    dup = df["timestamp"].duplicated(keep="first").to_numpy()
+    if dup.any():
+        skipped["duplicate timestamp"] = int(dup.sum())
+        df = df.loc[~dup]
+    non_numeric: dict[str, int] = {}
+    for c in df.columns:
+        if c in ("timestamp", "quality"):
+            continue
+        text = df[c].str.strip()
+        num = pd.to_numeric(text, errors="coerce")
+        nn = (num.isna() & (text != "") & ~text.str.lower().isin(("nan", "na", "null", "none"))).to_numpy()
+        if nn.any():
+            non_numeric[c] = int(nn.sum())
+        df[c] = num
+    return df.reset_index(drop=True), skipped, non_numeric
+
+
+def _report_reading(path, n, skipped, non_numeric, out=sys.stdout) -> None:
+    print(f"{path}: {n} rows read", file=out)
+    if skipped:
+        print("  rows skipped: " + ", ".join(f"{k}: {v}" for k, v in skipped.items()), file=out)
+    if non_numeric:
+        print("  values that are not numbers (marked missing): "
+              + ", ".join(f"{k}: {v}" for k, v in non_numeric.items()), file=out)
+
+
+def _load(args):
+    """(plant params, history, window or None); reports what was read unless --json."""
+    params = _params(args.config)
+    hist, skipped, nn = read_history_csv(args.data)
+    if not args.json:
+        _report_reading(args.data, len(hist), skipped, nn)
+    window = parse_window(args.window) if getattr(args, "window", None) else None
+    return params, hist, window
+
+
+def _base_model(params, state_dir, adaptive: bool):
+    """plant.yaml + saved initial calibration and dp_clean fit (+ fouling when adaptive)."""
+    from edge.statefiles import DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION, read_state
+    from model.calibration import apply_state
+    initial = read_state(INITIAL_CALIBRATION, state_dir)
+    dp = read_state(DP_CLEAN, state_dir)
+    fouling = read_state(FOULING_CALIBRATION, state_dir) if adaptive else None
+    notes = []
+    if initial is None:
+        notes.append(f"no initial calibration in {state_dir}: using plant.yaml's correction factors")
+    if dp is None:
+        notes.append(f"no clean pressure-drop fit in {state_dir}: using plant.yaml's dp_clean_coef")
+    if adaptive and fouling is None:
+        notes.append(f"no fouling calibration in {state_dir}: the model has no fouling")
+    return apply_state(params, initial, dp, fouling), notes
+
+
+def _window_mask(hist, processed, window):
+    ts = hist["timestamp"]
+    m = processed["usable"].to_numpy(dtype=bool).copy()
+    if window is not None:
+        m &= ((ts >= window[0]) & (ts <= window[1])).to_numpy()
+    return m
+
+
+class Progress:
+    """A text progress bar on stderr (a line every 10 % when stderr is not a terminal)."""
+
+    def __init__(self, label: str, stream=None):
+        self.label = label
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.t0 = time.monotonic()
+        self.last_decile = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        if done == 0:
+            self.t0 = time.monotonic()      # the clock starts with the first item
+        total = max(total, 1)
+        frac = min(done / total, 1.0)
+        el = time.monotonic() - self.t0
+        eta = el / frac - el if frac > 0 else math.nan
+        txt = f"{self.label} [{'#' * int(30 * frac):<30}] {done}/{total}  {el:5.0f} s" + (
+            f", ~{eta:.0f} s left" if frac < 1 and math.isfinite(eta) else "")
+        if self.tty:
+            print("\r" + txt, end="\n" if done >= total else "", file=self.stream, flush=True)
+        else:
+            dec = int(frac * 10)
+            if dec > self.last_decile:
+                self.last_decile = dec
+                print(txt, file=self.stream, flush=True)
+
+
+# --------------------------------------------------------------------------------------------------
+# commands
+# --------------------------------------------------------------------------------------------------
+def cmd_calibrate_initial(args) -> int:
+    import numpy as np
+    from edge.plantfile import PlantFileError
+    from edge.statefiles import DP_CLEAN, INITIAL_CALIBRATION, StateError, write_state
+    from model.calibration import CalibrationError, calibrate, calibration_frame, spec_from_config
+    from model.dpfit import DpFitError, fit_dp_clean
+    from model.measured import process
+    from model.replay import ReplaySettings
+    try:
+        params, hist, window = _load(args)
+        processed = process(hist, params)
+        mask = _window_mask(hist, processed, window)
+        if window is None:
+            n0 = ReplaySettings.from_config(params.extra).initial_minutes
+            idx = np.flatnonzero(mask)[:n0]
+            mask = np.zeros(len(mask), dtype=bool)
+            mask[idx] = True
+        if not mask.any():
+            raise CommandError("no usable samples in the window"
+                               + _unusable_note(processed, window, hist))
+        ts = hist["timestamp"][mask]
+        win = (ts.iloc[0].isoformat(), ts.iloc[-1].isoformat())
+        data = calibration_frame(hist, processed, mask)
+        res = calibrate(data, params, spec_from_config(params.extra, "initial"), window=win)
+        dp = fit_dp_clean(data["V_source"], data["dp_source_bar"], window=win)
+        p1 = write_state(INITIAL_CALIBRATION, res.to_dict(), args.state_dir)
+        p2 = write_state(DP_CLEAN, dp.to_dict(), args.state_dir)
+    except (CommandError, PlantFileError, CalibrationError, DpFitError, StateError) as exc:
+        return _fail("calibrate initial", exc)
+    if args.json:
+        print(json.dumps({"initial": res.to_dict(), "dp_clean": dp.to_dict()}, indent=1))
+    else:
+        print(res.summary())
+        print(f"clean pressure drop ({dp.form}): dp = {dp.coef_bar[0]:.5g} + {dp.coef_bar[1]:.5g}*V + "
+              f"{dp.coef_bar[2]:.5g}*V^2 bar (V in m3/h), R^2 {dp.r2:.3f}, flows "
+              f"{dp.V_range_m3h[0]:.0f}-{dp.V_range_m3h[1]:.0f} m3/h" + (f"; {dp.note}" if dp.note else ""))
+        print(f"saved {p1} and {p2}")
+    return 0
+
+
+def _unusable_note(processed, window, hist) -> str:
+    from model.measured import usable_counts
+    if window is not None:
+        ts = hist["timestamp"]
+        sel = ((ts >= window[0]) & (ts <= window[1])).to_numpy()
+        if not sel.any():
+            return f" (the file has no rows between {window[0]} and {window[1]})"
+        counts = usable_counts(processed.loc[sel])
+    else:
+        counts = usable_counts(processed)
+    return " (unusable: " + ", ".join(f"{k}: {v}" for k, v in counts.items()) + ")" if counts else ""
+
+
+def cmd_calibrate_fouling(args) -> int:
+    from edge.plantfile import PlantFileError
+    from edge.statefiles import FOULING_CALIBRATION, StateError, write_state
+    from model.calibration import (CalibrationError, calibrate, calibration_frame, evaporator_share,
+                                   spec_from_config)
+    from model.measured import process
+    try:
+        params, hist, window = _load(args)
+        fixed, notes = _base_model(params, args.state_dir, adaptive=False)
+        processed = process(hist, fixed)
+        mask = _window_mask(hist, processed, window)
+        if not mask.any():
+            raise CommandError("no usable samples in the window" + _unusable_note(processed, window, hist))
+        ts = hist["timestamp"][mask]
+        win = (ts.iloc[0].isoformat(), ts.iloc[-1].isoformat())
+        res = calibrate(calibration_frame(hist, processed, mask), fixed,
+                        spec_from_config(params.extra, "fouling"), window=win)
+        doc = res.to_dict()
+        adaptive = res.apply(fixed)
+        doc["R_th_f_share"] = evaporator_share(adaptive)
+        path = write_state(FOULING_CALIBRATION, doc, args.state_dir)
+    except (CommandError, PlantFileError, CalibrationError, StateError) as exc:
+        return _fail("calibrate fouling", exc)
+    if args.json:
+        print(json.dumps(doc, indent=1))
+    else:
+        for n in notes:
+            print(f"note: {n}")
+        print(res.summary())
+        print(f"  R_th,f share of the evaporator resistance: {100 * doc['R_th_f_share']:.1f} %")
+        print(f"saved {path}")
+    return 0
+
+
+def cmd_optimize(args) -> int:
+    from edge.plantfile import PlantFileError
+    from edge.statefiles import StateError
+    from model.measured import process
+    from model.optimize import OptimizationError, optimize_setpoint
+    try:
+        params, hist, window = _load(args)
+        adaptive, notes = _base_model(params, args.state_dir, adaptive=True)
+        processed = process(hist, adaptive)
+        mask = _window_mask(hist, processed, window)
+        if not mask.any():
+            raise CommandError("no usable samples in the window" + _unusable_note(processed, window, hist))
+        res = optimize_setpoint(hist.loc[mask], adaptive)
+    except (CommandError, PlantFileError, OptimizationError, StateError) as exc:
+        return _fail("optimize", exc)
+    if args.json:
+        print(json.dumps(res.to_dict(), indent=1))
+    else:
+        for n in notes:
+            print(f"note: {n}")
+        print(res.summary())
+    return 0
+
+
+def cmd_fit_surrogate(args) -> int:
+    from edge.plantfile import PlantFileError
+    from edge.statefiles import INITIAL_CALIBRATION, SURROGATE, StateError, read_state, write_state
+    from model.calibration import apply_state
+    from model.surrogate import (INPUTS, OUTPUTS, SurrogateError, design_from_config, fit_surrogate,
+                                 generate_samples)
+    try:
+        params = _params(args.config)
+        initial = read_state(INITIAL_CALIBRATION, args.state_dir)
+        base = apply_state(params, initial)
+        design = design_from_config(params.extra)
+        if args.points_per_level is not None:
+            design["points_per_level"] = args.points_per_level
+        if args.seed is not None:
+            design["seed"] = args.seed
+        t0 = time.perf_counter()
+        samples, skipped = generate_samples(base, design, progress=Progress("optimizing"))
+        sur = fit_surrogate(samples, seed=int(design["seed"]),
+                            reference_p_m_sp_barg=float(design["reference_p_m_sp_barg"]),
+                            meta={"design": design, "skipped_points": skipped,
+                                  "model": "plant.yaml + initial calibration" if initial else "plant.yaml",
+                                  "sampling_time_s": time.perf_counter() - t0})
+        if args.out:
+            sur.save(args.out)
+            path = args.out
+        else:
+            path = str(write_state(SURROGATE, sur.to_dict(), args.state_dir))
+    except (PlantFileError, SurrogateError, StateError) as exc:
+        return _fail("fit-surrogate", exc)
+    if args.json:
+        print(json.dumps(sur.to_dict(), indent=1))
+    else:
+        print(f"surrogate fitted on {sur.n_train} optima, tested on {sur.n_test} held out "
+              f"({sum(skipped.values())} design points skipped: "
+              + (", ".join(f"{k}: {v}" for k, v in skipped.items()) or "none") + ")")
+        for name, unit in OUTPUTS:
+            print(f"  {name:<15} R^2 test {sur.r2_test[name]:.4f}, train {sur.r2_train[name]:.4f}")
+        print("  fitted on: " + ", ".join(f"{n} {lo:.4g}..{hi:.4g} {u}" for (n, u), (lo, hi)
+                                          in zip(INPUTS, sur.ranges)))
+        print(f"saved {path}")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    import os
+    from pathlib import Path
+    from edge.plantfile import PlantFileError
+    from edge.statefiles import (DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION, StateError,
+                                 write_state)
+    from model.calibration import CalibrationError
+    from model.dpfit import DpFitError
+    from model.replay import ReplayError, ReplaySettings, replay
+    try:
+        params = _params(args.config)
+        hist, skipped, nn = read_history_csv(args.history)
+        _report_reading(args.history, len(hist), skipped, nn)
+        settings = ReplaySettings.from_config(params.extra, window_hours=args.window_hours,
+                                              cip_off_minutes=args.cip_off_minutes,
+                                              optimize=False if args.no_optimize else None)
+        iw = parse_window(args.initial_window) if args.initial_window else None
+        res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"))
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips)):
+            tmp = out / f".{name}.tmp"
+            frame.to_csv(tmp, index=False, float_format="%.6g")
+            os.replace(tmp, out / name)
+        text = res.summary()
+        if skipped or nn:
+            text = (f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}\n"
+                    + text)
+        (out / "summary.txt").write_text(text + "\n", encoding="utf-8")
+        write_state(INITIAL_CALIBRATION, res.initial.to_dict(), out)
+        write_state(DP_CLEAN, res.dp_clean.to_dict(), out)
+        if args.save_state:
+            write_state(INITIAL_CALIBRATION, res.initial.to_dict(), args.save_state)
+            write_state(DP_CLEAN, res.dp_clean.to_dict(), args.save_state)
+            if res.last_fouling is not None:
+                write_state(FOULING_CALIBRATION, res.last_fouling.to_dict(), args.save_state)
+    except (CommandError, PlantFileError, ReplayError, CalibrationError, DpFitError, StateError,
+            OSError) as exc:
+        return _fail("replay", exc)
+    print(text)
+    print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'summary.txt'}")
+    return 0

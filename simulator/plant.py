@@ -207,6 +207,8 @@ class Plant:
             self.cip_window = self.cip_schedule.pop()
             self.running = False
             self.steady = self._steady_state()
+            # compressors and pumps stop at once; temperatures and pressures settle through the lags
+            self._x[self._zero_when_off] = 0.0
         elif self.cip_window is not None and t >= self.cip_window[1]:
             c = self.cfg.cip
             self.fouling.clean(c.removal_share, c.dp_removal_share)
@@ -241,76 +243,92 @@ class Plant:
 
     def solve_controlled(self, inp: CycleInputs, params: PlantParams, guess=None):
         """Solve with the LS controller: T_source,out at its set point, or floating at a speed
-        bound. Returns (result, T_source_out [K], ls_limit). Raises ModelError when unsolvable."""
+        bound. Returns (result, T_source_out [K], ls_limit). Raises ModelError when unsolvable.
+
+        LS above 1800 rpm -> T_source,out rises until N_LS = 1800 ("max"). LS below 700 rpm, or a
+        duty below the HS turndown (HS at 700 rpm moving more than the LS delivers) -> T_source,out
+        falls until the plant can run at its minimum ("min").
+        """
         # a set point at or below p_e: the HS runs flat out and p_m floats, as for any low set point
         p_floor = self._p_e_estimate(inp, params) * 1.05
         if inp.p_m_sp < p_floor:
             inp = inp.replace(p_m_sp=p_floor)
+        first = None
         try:
             return solve(inp, params, guess=guess), inp.T_source_out, ""
         except InfeasibleOperation as exc:
-            if exc.reason not in ("ls_speed_high", "ls_speed_low") or exc.result is None:
-                if exc.reason == "negative_pinch" and exc.result is not None:
-                    return exc.result, inp.T_source_out, ""
+            if exc.reason == "negative_pinch" and exc.result is not None:
+                return exc.result, inp.T_source_out, ""
+            if exc.reason not in ("ls_speed_high", "ls_speed_low", "hs_speed_low"):
+                raise
+            if exc.reason != "hs_speed_low" and exc.result is None:
                 raise
             limit = "max" if exc.reason == "ls_speed_high" else "min"
             first = exc.result
         comp = params.comp_LS
         N_bound = comp.N_max if limit == "max" else comp.N_min
-        state = {"guess": first}
+        state = {"guess": first, "res": None}
 
         def f(T_out: float) -> float:
+            """N_LS - bound; for "min" a duty below the HS turndown counts as too little duty."""
             try:
                 r = solve(inp.replace(T_source_out=T_out), params, guess=state["guess"])
             except InfeasibleOperation as e:
                 if e.result is None:
+                    if limit == "min" and e.reason == "hs_speed_low":
+                        state["res"] = None
+                        return -1.0
                     raise
                 r = e.result
-            state["guess"] = r
-            state["res"] = r
+            state["guess"] = state["res"] = r
             return r.N_LS - N_bound
 
+        T_sp, T_in = inp.T_source_out, inp.T_source_in
+        edge = T_in - 0.5 if limit == "max" else max(T_sp - 8.0, 275.15)
+        if limit == "max":
+            clip = lambda x: min(max(x, T_sp), edge)     # noqa: E731
+        else:
+            clip = lambda x: min(max(x, edge), T_sp)     # noqa: E731
         # the LS speed is roughly proportional to the duty (T_in - T_out): start from that estimate
         # (or the last floating value) and iterate secant steps; fall back to a bracketed search
-        T_sp, T_in = inp.T_source_out, inp.T_source_in
-        x0, f0 = T_sp, first.N_LS - N_bound
-        edge = T_in - 0.5 if limit == "max" else max(T_sp - 8.0, 275.15)
-        clip = (lambda x: min(max(x, T_sp), edge)) if limit == "max" else (lambda x: min(max(x, edge), T_sp))
         prev = self._T_out_float
-        x1 = T_in - (T_in - T_sp) * N_bound / first.N_LS
+        x1 = T_in - (T_in - T_sp) * N_bound / first.N_LS if first is not None else T_sp - 0.5
         if prev is not None and (prev - T_sp) * (x1 - T_sp) > 0:
             x1 = prev
+        x0, f0 = T_sp, (first.N_LS - N_bound) if first is not None else -1.0
         x1 = clip(x1)
         f1 = f(x1)
-        lo_hi = [(x0, f0), (x1, f1)]
+        seen = [(x0, f0), (x1, f1)]
+        secant = first is not None and state["res"] is not None
         for _ in range(8):
-            if abs(f1) < N_TOL:
-                break
-            if f1 == f0:
+            if not secant or abs(f1) < N_TOL or f1 == f0:
                 break
             x0, f0, x1 = x1, f1, clip(x1 - f1 * (x1 - x0) / (f1 - f0))
             f1 = f(x1)
-            lo_hi.append((x1, f1))
-        if abs(f1) >= N_TOL:      # secant failed: bracket from the points seen, widen, bisect
-            pos = [p for p in lo_hi if p[1] > 0]
-            neg = [p for p in lo_hi if p[1] <= 0]
-            if not neg and limit == "max" or not pos and limit == "min":
-                x = edge
-                if (f(x) > 0) == (limit == "max"):
-                    raise ConvergenceError(f"LS speed stays beyond {N_bound:.0f} rpm up to "
-                                           f"T_source_out {x - T0:.2f} degC", reason="ls_bound_search")
-                (neg if limit == "max" else pos).append((x, 0.0))
-            a = min(pos, key=lambda p: abs(p[1]))[0] if pos else T_sp
-            b = min(neg, key=lambda p: abs(p[1]))[0] if neg else T_sp
+            seen.append((x1, f1))
+            secant = state["res"] is not None
+        if not (secant and abs(f1) < N_TOL):
+            # bracket from the points seen (widen to the edge if needed), then bisect (brentq)
+            pos = [p for p in seen if p[1] > 0]
+            neg = [p for p in seen if p[1] <= 0]
+            if (limit == "max" and not neg) or (limit == "min" and not pos):
+                fe = f(edge)
+                if (fe > 0) == (limit == "max"):
+                    raise ConvergenceError(f"LS speed bound {N_bound:.0f} rpm not reached with "
+                                           f"T_source_out at {edge - T0:.2f} degC", reason="ls_bound_search")
+                (neg if fe <= 0 else pos).append((edge, fe))
+            a = min(pos, key=lambda p: abs(p[1]))[0]
+            b = min(neg, key=lambda p: abs(p[1]))[0]
             x1 = brentq(f, min(a, b), max(a, b), xtol=1e-3, maxiter=60)
-            f(x1)
-        T_out = x1
+            if f(x1) < 0 and limit == "min":     # land on the runnable side of the HS turndown
+                x1 = clip(x1 - 1e-3)
+                f(x1)
         r = state["res"]
-        if not comp.N_min - 1.0 <= r.N_LS <= comp.N_max + 1.0:
-            raise ConvergenceError(f"LS speed bound search ended at {r.N_LS:.0f} rpm",
+        if r is None or not (comp.N_min - 1.0 <= r.N_LS <= comp.N_max + 1.0):
+            raise ConvergenceError(f"LS speed bound search failed at T_source_out {x1 - T0:.3f} degC",
                                    reason="ls_bound_search")
-        self._T_out_float = T_out
-        return r, T_out, limit
+        self._T_out_float = x1
+        return r, x1, limit
 
     def _p_e_estimate(self, inp: CycleInputs, params: PlantParams) -> float:
         C = params.cp_w * params.rho_w * inp.V_source

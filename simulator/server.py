@@ -167,6 +167,7 @@ class PlantSimulator:
         self._restart_task: asyncio.Task | None = None
         self._down: asyncio.Event | None = None
         self._sp_last: float | None = None
+        self._listening: asyncio.Event | None = None
         self._schedule = [(f, False) for f in cfg.faults]
         self._errors: list[BaseException] = []
 
@@ -237,6 +238,7 @@ class PlantSimulator:
         """Listen, push the first register image and start stepping the plant."""
         self._update = asyncio.Condition()
         self._down = asyncio.Event()
+        self._listening = asyncio.Event()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hp-sim-plant")
         if self.truth_log_path:
             self.truth_log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -257,6 +259,7 @@ class PlantSimulator:
             raise RuntimeError(f"simulator could not listen on {self.host}:{port}")
         self.port = sockets[0].getsockname()[1]
         self._server = server
+        self._listening.set()
         log.info("simulator listening on %s:%s", self.host, self.port)
 
     async def stop(self) -> None:
@@ -308,6 +311,7 @@ class PlantSimulator:
     async def restart(self, down_s: float = 1.0) -> None:
         """Server restart: listener and connections closed for down_s wall seconds, then back on
         the same port with the same register memory. Returns when it listens again."""
+        self._listening.clear()
         if self._server is not None:
             await self._server.shutdown()
             self._server = None
@@ -331,6 +335,10 @@ class PlantSimulator:
     def loop_task(self) -> asyncio.Task | None:
         """The plant loop task (done only after stop() or a failure)."""
         return self._task
+
+    async def wait_listening(self, timeout: float = 10.0) -> None:
+        """Wait until the server listens (after start or a restart)."""
+        await asyncio.wait_for(self._listening.wait(), timeout)
 
     def _on_fault(self, kind: str, tag: str | None, on: bool) -> None:
         if kind != "restart":

@@ -22,7 +22,7 @@ import pandas as pd
 
 from .config import TAG_FAULTS, SimulatorConfig, load_simulator_config, read_tags
 from .faults import Faults
-from .plant import INDEX, NAMES, Plant
+from .plant import NAMES, Plant
 from .profiles import DAY
 from .registers import SYSTEM_TAGS, quantize
 
@@ -162,5 +162,3 @@ def read_history(path: str | Path) -> pd.DataFrame:
     df["timestamp"] = pd.to_datetime(df["timestamp"], utc=True)
     return df.set_index("timestamp")
 
-
-__all__ = ["ExportResult", "export_history", "read_history", "INDEX"]

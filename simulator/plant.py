@@ -38,7 +38,7 @@ from model.params import CycleInputs, PlantParams
 from model.units import BAR, M3H, T0
 
 from .config import SimulatorConfig, load_simulator_config
-from .profiles import DAY, Boundary, CipSchedule, Fouling, Profiles
+from .profiles import Boundary, CipSchedule, Fouling, Profiles
 
 # plant-provided measurement tags (SPEC §4 canonical names) and their lag class
 MEASURED = (
@@ -480,6 +480,3 @@ class Plant:
         out, self.truth_records = self.truth_records, []
         return out
 
-
-def days(n: float) -> float:
-    return n * DAY

@@ -54,6 +54,7 @@ WRITE_FCS = (5, 6, 15, 16, 22, 23)
 INTERNAL_FC = {"input": 4, "holding": 3}     # plant pushes: read FCs never carry values on the wire
 UNUSED_BITS_ADDRESS = 65520                  # SimDevice needs coil/discrete blocks; park them here
 MAX_LOOP_HZ = 20.0                           # register pushes per wall second at most
+MAX_PERIOD_S = 0.5                           # ... and at least one push per this (life counter)
 
 
 @dataclass(frozen=True)
@@ -155,6 +156,7 @@ class PlantSimulator:
         self.stats = _Stats()
         self.served: dict[str, float] = {}       # engineering values last pushed
         self.life_counter = 0
+        self.clock = self.plant.t                # PLC clock: plant time, continuous between ticks
         self.port: int | None = None
         self._server: _Server | None = None
         self._context = None
@@ -381,10 +383,14 @@ class PlantSimulator:
             raise RuntimeError("simulator plant loop failed") from self._errors[0]
 
     async def _run(self) -> None:
+        """Step the plant to wall-clock plant time and push the registers, every `period`:
+        one tick's worth of wall time, but at least MAX_PERIOD_S (the life counter and the PLC
+        clock move like a PLC's even at 1x) and at most MAX_LOOP_HZ pushes per second."""
         loop = asyncio.get_running_loop()
         wall0, plant0 = loop.time(), self.plant.t
-        min_period = 1.0 / MAX_LOOP_HZ
+        period = min(max(self.plant.dt / self.speed, 1.0 / MAX_LOOP_HZ), MAX_PERIOD_S)
         max_ticks = max(1, int(math.ceil(2.0 * self.speed / self.plant.dt)))   # <= 2 s of plant time
+        next_wake = loop.time()
         try:
             while not self._stopping:
                 await self._sync_setpoint()
@@ -394,16 +400,16 @@ class PlantSimulator:
                     # cannot keep up (slow machine, huge speed): re-anchor instead of bursting
                     self.stats.catchups += 1
                     wall0, plant0 = loop.time(), self.plant.t
+                    target = self.plant.t
+                self.clock = min(target, self.plant.t + self.plant.dt)
                 self._apply_schedule()
                 self._drain_truth()
                 if not self.faults.frozen:
                     await self._push()
                 async with self._update:
                     self._update.notify_all()
-                next_plant = self.plant.t + self.plant.dt
-                due = wall0 + (next_plant - plant0) / self.speed
-                await asyncio.sleep(max(due - loop.time(), min_period if self.speed * min_period
-                                        > self.plant.dt else 0.0, 0.001))
+                next_wake = max(next_wake + period, loop.time() + 0.001)
+                await asyncio.sleep(next_wake - loop.time())
         except asyncio.CancelledError:
             raise
         except Exception as exc:   # surfaced to waiters and re-raised: a dead plant must be loud
@@ -466,7 +472,7 @@ class PlantSimulator:
         values = dict(self.plant.measured)
         values.update({k: float(v) for k, v in self.plant.flags.items()})
         values = self.faults.apply(values)
-        values["plc_clock"] = float(int(self.plant.t))
+        values["plc_clock"] = float(int(max(self.clock, self.plant.t)))
         values["life_counter"] = float(self.life_counter)
         values["p_m_sp"] = self.plant.p_m_sp_bar_g
         return values

@@ -81,7 +81,7 @@ def test_reads_match_plant_state():
                 want = served[name]
                 tol = 1e-5 * max(1.0, abs(want)) if t.type == "float32" else t.scale / 2 + 1e-9
                 assert got[name] == pytest.approx(want, abs=tol), name
-            assert got["plc_clock"] == int(sim.plant_time)
+            assert int(sim.plant_time) <= got["plc_clock"] <= sim.plant_time + sim.plant.dt
             assert got["running"] == 1 and got["cip"] == 0
             # consistent with the hidden steady state (within lags + noise)
             tr = sim.plant.steady.res
@@ -92,6 +92,21 @@ def test_reads_match_plant_state():
             later = await read_all(c)
             assert later["life_counter"] != got["life_counter"]
             assert later["plc_clock"] >= got["plc_clock"]
+        finally:
+            c.close()
+            await sim.stop()
+    run(body())
+
+
+def test_real_time_life_counter_and_clock_move_like_a_plc():
+    async def body():
+        sim, c = await started(speed=1.0)
+        try:
+            a = await read_all(c)
+            await sim.wait_ticks(2, timeout=3.0)      # pushes at least every 0.5 s at 1x
+            b = await read_all(c)
+            assert b["life_counter"] != a["life_counter"]
+            assert 0 <= b["plc_clock"] - a["plc_clock"] <= 3
         finally:
             c.close()
             await sim.stop()

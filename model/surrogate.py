@@ -273,5 +273,6 @@ def fit_surrogate(samples: pd.DataFrame, train_share: float = TRAIN_SHARE, seed:
         r2_train={nm: r2_score(Y[tr, j], pred[tr, j]) for j, nm in enumerate(names)},
         n_train=len(tr), n_test=len(te), reference_p_m_sp_barg=reference_p_m_sp_barg,
         meta={**(meta or {}), "condition_number": float(sv[0] / sv[-1]),
-              "fit_time_s": time.perf_counter() - t0})
+              "fit_time_s": time.perf_counter() - t0,
+              "test_rows": [int(i) for i in np.sort(s.index.to_numpy()[te])]})
     return sur

@@ -1,4 +1,4 @@
-"""Gateway sub-commands: check-config, read (run and demo join later, one function each).
+"""Gateway sub-commands: check-config, read, run and demo (one function each).
 
 Heavy imports (pymodbus via edge.plc) happen inside the command functions.
 """
@@ -42,6 +42,8 @@ def register(sub) -> None:
                    help="give up after this many seconds in total (default: %(default)s)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_read)
+
+    register_run_demo(sub)
 
 
 # ------------------------------------------------------------------------------ check-config
@@ -285,3 +287,110 @@ def _format_text(cfg, target: str, decoded: dict) -> str:
     for extra in sorted(set_bits - {n for _, n in adv.status_bits}):
         out.append(f"  [x]    {extra} (not configured)\n")
     return "".join(out)
+
+
+# ----------------------------------------------------------------------------- run, demo
+
+
+def register_run_demo(sub) -> None:
+    """Parser entries of ``run`` and ``demo`` (the gateway daemon; edge/loop.py, edge/demo.py)."""
+    p = sub.add_parser("run", help="run the gateway daemon (poll, model, advisory block)",
+                       description="Run the gateway until SIGTERM/SIGINT: poll the PLC, keep the "
+                       "history, calibrate and optimize on the configured cadence and write the "
+                       "advisory block once per scan. Exit codes: 0 stopped on request, 2 invalid "
+                       "configuration or state (nothing was connected), 1 unexpected error.")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--time-source", choices=("wall", "plc"), default="wall",
+                   help="time-stamp samples with the wall clock (default) or the PLC's clock "
+                   "register plc_clock (plant time, e.g. an accelerated simulator)")
+    p.add_argument("--log-level", default="INFO",
+                   choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="(default: %(default)s)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="simulator at 60x plant speed + gateway, with a live view",
+                       description="Start the plant simulator on 127.0.0.1 (free port) at 60x "
+                       "plant speed and the gateway against it; show the advisory block as the "
+                       "HMI reads it, beside the simulator's hidden truth. Ctrl-C stops both.")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--minutes", type=float, help="stop by itself after this many wall minutes")
+    p.add_argument("--speed", type=float, default=60.0,
+                   help="plant seconds per wall second (default: %(default)s)")
+    p.add_argument("--state-dir", help="keep history, state and log here (default: a temporary "
+                   "directory removed at the end)")
+    p.add_argument("--refresh", type=float, default=2.0,
+                   help="seconds between view updates (default: %(default)s)")
+    p.add_argument("--no-commissioning", action="store_true",
+                   help="skip the initial calibration on clean simulated operation (the fouling "
+                   "estimate then carries the data sheet's error)")
+    p.set_defaults(func=cmd_demo)
+
+
+def _setup_logging(level: str) -> None:
+    import logging
+    import os
+
+    # under systemd, journald adds the time stamp and the unit name
+    fmt = ("%(levelname)s %(name)s: %(message)s" if os.environ.get("JOURNAL_STREAM")
+           else "%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=getattr(logging, level), format=fmt, stream=sys.stderr)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # edge.plc reports PLC problems
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.config import ConfigError, load_config
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        print(f"{len(exc.problems)} problem(s); nothing was started.", file=sys.stderr)
+        return 2
+    _setup_logging(args.log_level)
+    if args.time_source == "plc" and "plc_clock" not in {t.name for t in cfg.tags}:
+        print(f"{cfg.tags_file}: --time-source plc needs a tag 'plc_clock'; nothing was started.",
+              file=sys.stderr)
+        return 2
+    from edge.service import GatewayService, StartupError
+
+    try:
+        service = GatewayService(cfg, time_source=args.time_source)
+    except StartupError as exc:
+        print(f"{exc}; nothing was started.", file=sys.stderr)
+        return 2
+    return asyncio.run(service.run())
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+    from pathlib import Path
+
+    from edge.config import ConfigError, load_config
+
+    try:
+        load_config(args.config)
+    except ConfigError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return 2
+    if not 1.0 <= args.speed <= 3600.0 or args.refresh <= 0 or (args.minutes is not None
+                                                                and args.minutes <= 0):
+        print("--speed must be 1..3600, --refresh and --minutes > 0", file=sys.stderr)
+        return 2
+    _setup_logging("WARNING")
+    from edge.demo import CommissioningError, run_demo
+    from edge.service import StartupError
+
+    try:
+        return asyncio.run(run_demo(Path(args.config), args.minutes, args.speed,
+                                    Path(args.state_dir) if args.state_dir else None,
+                                    args.refresh, commissioning=not args.no_commissioning))
+    except (StartupError, CommissioningError) as exc:
+        print(f"{exc}; nothing was started.", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:   # Ctrl-C before the gateway's own handler was installed
+        logging.getLogger(__name__).warning("interrupted during start-up")
+        return 130

@@ -393,22 +393,23 @@ class Plant:
         slot = self.k // every
         if self._opt_cache is not None and self._opt_cache[0] == slot:
             return self._opt_cache[1]
-        out = {"p_m_opt_bar_g": math.nan, "p_m_sp_opt_bar_g": math.nan, "COP_opt": math.nan}
+        out = {"p_m_opt_bar_g": math.nan, "p_m_sp_opt_bar_g": math.nan, "COP_opt": math.nan,
+               "opt_hs_saturated": False}
         r0 = self.steady.res
         if self.running and r0 is not None:
             b = self.boundary
             params = self.effective_params(b.V_source_m3h, b.V_sink_m3h)
             amb = self.amb
-            cache: dict[float, tuple[float, float]] = {}
+            cache: dict[float, tuple[float, float, bool]] = {}
 
             def cop(p_sp_g: float) -> float:
                 key = round(p_sp_g, 4)
                 if key not in cache:
                     try:
                         r, _, _ = self.solve_controlled(self.inputs(b, p_m_sp_bar_g=p_sp_g), params, r0)
-                        cache[key] = (r.COP, r.p_m / BAR - amb)
+                        cache[key] = (r.COP, r.p_m / BAR - amb, r.hs_saturated)
                     except (ModelError, ValueError):
-                        cache[key] = (-math.inf, math.nan)
+                        cache[key] = (-math.inf, math.nan, False)
                 return cache[key][0]
 
             saved = self._T_out_float
@@ -431,9 +432,12 @@ class Plant:
                     f2 = cop(x2)
             self._T_out_float = saved
             best = max(cache, key=lambda k: cache[k][0])
-            if math.isfinite(cache[best][0]):
-                out = {"p_m_opt_bar_g": cache[best][1], "p_m_sp_opt_bar_g": float(best),
-                       "COP_opt": cache[best][0]}
+            COP_opt, p_m_opt, hs_sat = cache[best]
+            if math.isfinite(COP_opt):
+                # on the HS-saturation plateau every lower set point gives the same p_m: report
+                # the set point that just reaches it
+                out = {"p_m_opt_bar_g": p_m_opt, "p_m_sp_opt_bar_g": p_m_opt if hs_sat else float(best),
+                       "COP_opt": COP_opt, "opt_hs_saturated": bool(hs_sat)}
         self._opt_cache = (slot, out)
         return out
 
@@ -473,7 +477,7 @@ class Plant:
                                               "p_e_bar_g", "p_m_bar_g", "p_c_bar_g", "N_LS", "N_HS",
                                               "eta_is_LS", "eta_is_HS", "p_m_gm_bar_g",
                                               "p_m_opt_bar_g", "p_m_sp_opt_bar_g", "COP_opt")})
-            rec["hs_saturated"] = False
+            rec["hs_saturated"] = rec["opt_hs_saturated"] = False
         return rec
 
     def drain_truth(self) -> list[dict]:

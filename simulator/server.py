@@ -20,7 +20,8 @@ Usage (tests, demo)::
     await sim.start()            # listening on 127.0.0.1, plant stepping
     sim.port                     # the bound port
     sim.faults.enable("stuck", tag="T_e"); sim.faults.disable("stuck", tag="T_e")
-    await sim.wait_ticks(2)      # synchronise on register updates, not sleeps
+    await sim.wait_ticks(2)      # synchronise on register updates, not sleeps (while the frozen
+                                 # fault is on nothing is pushed: use wait_plant_time(t) instead)
     sim.truth                    # latest hidden truth; sim.writes_rejected(); sim.write_log
     await sim.stop()
 """
@@ -255,7 +256,11 @@ class PlantSimulator:
         if self._context is not None:
             server.context = self._context     # a restart keeps the PLC's register memory
         self._context = server.context
-        await server.serve_forever(background=True)
+        try:
+            await server.serve_forever(background=True)
+        except RuntimeError as exc:
+            raise RuntimeError(f"simulator could not listen on {self.host}:{port} "
+                               f"(address in use or not local?): {exc}") from None
         sockets = getattr(server.transport, "sockets", None) or []
         if not sockets:
             raise RuntimeError(f"simulator could not listen on {self.host}:{port}")

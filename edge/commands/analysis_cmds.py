@@ -158,7 +158,8 @@ def read_history_csv(path):
     return df.reset_index(drop=True), skipped, non_numeric
 
 
-def _report_reading(path, n, skipped, non_numeric, out=sys.stdout) -> None:
+def _report_reading(path, n, skipped, non_numeric, out=None) -> None:
+    out = out or sys.stdout
     print(f"{path}: {n} rows read", file=out)
     if skipped:
         print("  rows skipped: " + ", ".join(f"{k}: {v}" for k, v in skipped.items()), file=out)

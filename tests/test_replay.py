@@ -1,0 +1,174 @@
+"""Replay of a history with fouling and a CIP (SPEC §5-6, issue #4), and the analysis commands."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from edge.cli import main
+from model.measured import process
+from model.replay import CIP_COLUMNS, ReplayError, ReplaySettings, detect_cips, replay
+from model.synthetic import Noise, Operation, Truth, generate
+
+R_TOL = 0.2e-3             # K/kW per window (issue #4)
+CF_DP_TOL = 0.02           # per window (issue #4)
+CIP_SHARE_TOL = 5.0        # percentage points, removed share of R_th,f (issue #4)
+CF_EVA_REL_TOL = 0.03
+REQUIRED_WINDOW_COLUMNS = (
+    "window_start", "window_end", "n_samples", "R_th_f_K_per_kW", "R_th_f_share", "CF_dp_f",
+    "nrmse_p_e", "nrmse_dp_source", "nrmse_COP_fixed", "nrmse_COP_adaptive", "nrmse_Q_sink_fixed",
+    "nrmse_Q_sink_adaptive", "p_m_opt_bar_a", "p_m_gm_bar_a", "dCOP_opt_pct", "dQ_sink_opt_pct")
+REQUIRED_CIP_COLUMNS = ("cip_start", "cip_end", "R_th_f_before", "R_th_f_after", "R_th_f_removed_pct",
+                        "CF_dp_f_before", "CF_dp_f_after")
+
+
+@pytest.fixture(scope="module")
+def history(plant):
+    """Commissioning (2 h, clean), then 10 days later a day with a flagged 6-h CIP after 12 h."""
+    op = Operation(hours=26, commissioning_minutes=120, gap_after_commissioning_days=10,
+                   cip_starts_h=(12.0,), cip_duration_h=6.0)
+    return generate(plant, op, Truth(), Noise(), seed=3)
+
+
+@pytest.fixture(scope="module")
+def result(plant, history):
+    return replay(history.history, plant)
+
+
+def _truth_in(history, start, end):
+    ts = pd.to_datetime(history.truth["timestamp"], utc=True)
+    m = ((ts >= pd.Timestamp(start)) & (ts <= pd.Timestamp(end)) & (history.truth["running"] == 1)).to_numpy()
+    return history.truth[m]
+
+
+def test_windows_recover_fouling_in_every_window(result, history):
+    w = result.windows
+    assert set(REQUIRED_WINDOW_COLUMNS) <= set(w.columns)
+    ok = w[w["status"] == "ok"]
+    assert len(ok) == len(w) >= 8
+    for _, row in ok.iterrows():
+        tr = _truth_in(history, row["window_start"], row["window_end"])
+        assert abs(row["R_th_f_K_per_kW"] - tr["R_th_f_K_per_kW"].mean()) <= R_TOL, row["window_start"]
+        assert abs(row["CF_dp_f"] - tr["CF_dp_f"].mean()) <= CF_DP_TOL, row["window_start"]
+        assert 0.0 < row["R_th_f_share"] < 1.0
+    # the windows next to the CIP touch it and none straddles it
+    cip = result.cips.iloc[0]
+    ends = pd.to_datetime(ok["window_end"], utc=True)
+    starts = pd.to_datetime(ok["window_start"], utc=True)
+    c0, c1 = pd.Timestamp(cip["cip_start"]), pd.Timestamp(cip["cip_end"])
+    assert not ((starts < c0) & (ends > c0)).any()
+    assert (c0 - ends[ends < c0].max()) <= pd.Timedelta(minutes=2)
+    assert (starts[starts > c1].min() - c1) <= pd.Timedelta(minutes=20)     # restart ramp only
+
+
+def test_adaptive_model_beats_fixed_model_on_cop(result):
+    """The papers' key result: with fouling, the adaptive model estimates COP better."""
+    ok = result.windows[result.windows["status"] == "ok"]
+    assert (ok["nrmse_COP_adaptive"] < ok["nrmse_COP_fixed"]).all()
+    assert ok["nrmse_COP_adaptive"].mean() < 0.5 * ok["nrmse_COP_fixed"].mean()
+    assert ok["nrmse_Q_sink_adaptive"].mean() < ok["nrmse_Q_sink_fixed"].mean()
+
+
+def test_cip_table_reports_removed_share(result, history):
+    cips = result.cips
+    assert list(cips.columns) == list(CIP_COLUMNS)
+    assert set(REQUIRED_CIP_COLUMNS) <= set(cips.columns)
+    assert len(cips) == 1
+    c = cips.iloc[0]
+    truth = history.cips[0]
+    assert pd.Timestamp(c["cip_start"]) == truth["start"]
+    assert c["detected_by"] == "cip_flag"
+    assert abs(c["R_th_f_removed_pct"] - truth["removed_pct"]) <= CIP_SHARE_TOL
+    assert c["R_th_f_after"] < c["R_th_f_before"]
+    assert c["CF_dp_f_after"] < c["CF_dp_f_before"]
+
+
+def test_initial_window_and_counts(result, history):
+    assert result.initial.n_samples == 90          # the first 90 usable minutes
+    assert pd.Timestamp(result.initial_window[1]) < pd.Timestamp(history.cips[0]["start"])
+    assert abs(result.initial.params["CF_eva"] / history.params.CF_eva - 1) <= CF_EVA_REL_TOL
+    assert result.unusable["cip"] == 360
+    assert result.n_rows == len(history.history)
+    text = result.summary()
+    for word in ("initial calibration", "CIPs: 1", "COP NRMSE", "removed", "WARNING"):
+        assert word in text
+
+
+def test_optimization_per_window(result):
+    ok = result.windows[result.windows["status"] == "ok"]
+    assert ok["p_m_opt_bar_a"].notna().all()
+    assert (ok["dCOP_opt_pct"] >= 0).all()
+    assert (ok["p_m_opt_bar_a"] > ok["p_m_gm_bar_a"] - 1.0).all()
+
+
+def test_cip_without_flag_is_found_by_the_long_stop(plant, history):
+    h = history.history.copy()
+    h["cip"] = 0.0
+    processed = process(h, plant)
+    ts = pd.DatetimeIndex(pd.to_datetime(h["timestamp"], utc=True))
+    found = detect_cips(ts, processed, np.zeros(len(h), bool), off_minutes=360)
+    assert len(found) == 1 and found[0]["detected_by"] == "plant_off"
+    assert found[0]["start"] == history.cips[0]["start"]
+    # a stop shorter than the threshold is not a CIP
+    assert detect_cips(ts, processed, np.zeros(len(h), bool), off_minutes=400) == []
+
+
+def test_replay_errors(plant, history):
+    with pytest.raises(ReplayError, match="timestamp"):
+        replay(history.history.drop(columns=["timestamp"]), plant)
+    with pytest.raises(ReplayError, match="initial window has 0 usable samples"):
+        replay(history.history, plant, initial_window=("2030-01-01", "2030-01-02"))
+    with pytest.raises(ReplayError, match="window_hours"):
+        ReplaySettings.from_config({}, window_hours=-1.0)
+
+
+# ---- commands ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def csv_file(plant, tmp_path_factory):
+    """A short export with a few broken rows: commissioning, then 4 h of fouled operation."""
+    op = Operation(hours=6, commissioning_minutes=120, gap_after_commissioning_days=10)
+    h = generate(plant, op, Truth(), Noise(), seed=8).history.astype(object)
+    h.loc[7, "timestamp"] = "not a time"
+    h.loc[200, "T_sink_in"] = "#VALUE!"
+    h = pd.concat([h, h.iloc[[250]]], ignore_index=True)          # a repeated timestamp
+    path = tmp_path_factory.mktemp("hist") / "history.csv"
+    h.to_csv(path, index=False)
+    return path
+
+
+def test_replay_command_writes_tables(csv_file, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["replay", str(csv_file), "--out", str(out), "--no-optimize"]) == 0
+    text = capsys.readouterr().out
+    assert "bad timestamp: 1" in text and "duplicate timestamp: 1" in text and "T_sink_in: 1" in text
+    assert "missing: T_sink_in: 1" in text                 # the unusable row, counted per reason
+    w = pd.read_csv(out / "windows.csv")
+    assert set(REQUIRED_WINDOW_COLUMNS) <= set(w.columns) and len(w) >= 1
+    c = pd.read_csv(out / "cip.csv")
+    assert list(c.columns) == list(CIP_COLUMNS) and len(c) == 0
+    assert (out / "summary.txt").read_text().strip()
+    assert json.loads((out / "initial_calibration.json").read_text())["kind"] == "initial"
+
+
+def test_calibrate_and_optimize_commands(csv_file, tmp_path, capsys):
+    state = tmp_path / "state"
+    assert main(["calibrate", "initial", str(csv_file), "--state-dir", str(state)]) == 0
+    out = capsys.readouterr().out
+    assert "CF_eva" in out and "WARNING" in out and "clean pressure drop" in out
+    assert (state / "initial_calibration.json").exists() and (state / "dp_clean.json").exists()
+    win = "2024-03-11T04:30/2024-03-11T06:30"
+    assert main(["calibrate", "fouling", str(csv_file), "--window", win, "--state-dir", str(state),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert 3e-3 < doc["params"]["R_th_f_K_per_kW"] < 6e-3 and 0.3 < doc["R_th_f_share"] < 0.8
+    assert json.loads((state / "fouling_calibration.json").read_text())["params"] == doc["params"]
+    assert main(["optimize", str(csv_file), "--window", win, "--state-dir", str(state)]) == 0
+    assert "optimum p_m,sp" in capsys.readouterr().out
+    # errors: exit code 2 and a message that says what is wrong
+    assert main(["optimize", str(csv_file), "--window", "2024-03-11T04:30", "--state-dir", str(state)]) == 2
+    assert "expected START/END" in capsys.readouterr().err
+    assert main(["calibrate", "fouling", str(csv_file), "--window", "2031-01-01/2031-01-02",
+                 "--state-dir", str(state)]) == 2
+    assert "no rows between" in capsys.readouterr().err

@@ -10,9 +10,11 @@ sum equals 2 * grad F, so the rounds converge to a stationary point of F itself;
 
 Standard errors and correlations come from a central-difference Jacobian of the residuals at the
 solution, each target's residuals divided by that target's RMSE (its noise level as seen by the
-model): cov = s^2 (J^T J)^-1. Parameters at a bound are included (flagged). Two parameters
-correlated beyond |r| = ``correlation_limit``, or a rank-deficient Jacobian, give an identifiability
-warning that names them. With Q_source an input of the model, Q_sink = Q_source + W_total holds in
+model): cov = s^2 (J^T J)^-1. Parameters at a bound are included (flagged). An identifiability
+warning names the parameters when two are correlated beyond |r| = ``correlation_limit``, when the
+Jacobian is rank-deficient, and also when one is tied to a combination of the others (multiple
+correlation beyond the limit) or its standard error exceeds ``SE_RANGE_LIMIT`` of its bound range
+(pairwise |r| alone hovers around 0.95 for the condenser factors and misses some windows). With Q_source an input of the model, Q_sink = Q_source + W_total holds in
 every solved point, so Q_sink and W_total carry the same information about the condenser factors:
 the default initial calibration can determine p_c, not how DSH, condenser and SC share it.
 
@@ -64,6 +66,7 @@ STATISTICS = ("nrmse", "rmse")
 DEFAULT_TOLERANCE = 1e-5          # SPEC §5
 CORRELATION_LIMIT = 0.95          # |r| beyond which two parameters are reported as not separable
 RANK_RCOND = 1e-8                 # singular value ratio below which J counts as rank-deficient
+SE_RANGE_LIMIT = 0.25             # standard error beyond this share of the bound range: not determined
 JAC_STEP = 1e-4                   # central-difference step, share of each parameter's bound range
 MAX_ROUNDS = 8                    # IRLS rounds
 NRMSE_FLOOR = 1e-9                # keeps IRLS weights finite when a target is fitted exactly
@@ -627,6 +630,27 @@ def _identifiability(prob: _Problem, x: np.ndarray, e: dict, spec: CalibrationSp
                 if math.isfinite(r) and abs(r) > spec.correlation_limit:
                     warnings.append(f"{names[free[a]]} and {names[free[b]]} are correlated (r = {r:+.3f}): "
                                     f"the targets cannot separate them")
+        if not rank_def:
+            named = " ".join(warnings)
+            C = np.array([[corr[names[i]][names[j]] for j in free] for i in free])
+            try:
+                Ci = np.linalg.inv(C)
+            except np.linalg.LinAlgError:
+                Ci = None
+            for a, i in enumerate(free):
+                n_i = names[i]
+                # a parameter tied to a *combination* of the others (no single pair beyond the limit)
+                if Ci is not None and len(free) > 2 and n_i not in named and Ci[a, a] > 0:
+                    rho = math.sqrt(max(0.0, 1.0 - 1.0 / Ci[a, a]))
+                    if rho > spec.correlation_limit:
+                        partners = [names[free[b]] for b in range(len(free))
+                                    if b != a and abs(C[a, b]) > 0.3]
+                        warnings.append(f"{n_i} is determined only jointly with {', '.join(partners) or 'the others'}"
+                                        f" (multiple correlation {rho:.3f})")
+                # a parameter the targets hardly constrain within its bounds
+                if d[a] > SE_RANGE_LIMIT * span[i]:
+                    warnings.append(f"{n_i}: standard error {d[a]:.3g} is {100 * d[a] / span[i]:.0f} % of its "
+                                    f"bound range: the targets hardly determine it")
     return dict(std_errors=std, correlation=corr, warnings=warnings, condition_number=cond,
                 at_bound=at_bound)
 

@@ -1,0 +1,131 @@
+"""Benchmarks of the analysis part (issue #4 targets), wired into ``hp-edge bench``.
+
+Targets (2-core machine): fouling calibration of a 120-sample window <= 2 s; initial calibration of
+90 samples <= 20 s; set-point optimization of a 120-sample window <= 3 s; surrogate evaluation
+<= 50 us; replay of 30 days of one-minute history <= 10 min. Data: ``model.synthetic`` with known
+truth, so the bench also reports how well the truth is recovered. Timings are wall clock, best of a
+few repeats for the short ones.
+"""
+from __future__ import annotations
+
+import math
+import time
+import timeit
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+TARGETS = {"fouling_calibration_120_s": 2.0, "initial_calibration_90_s": 20.0,
+           "optimization_120_s": 3.0, "surrogate_eval_us": 50.0, "replay_30_days_s": 600.0}
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _params():
+    import yaml
+    from .params import PlantParams
+    with open(ROOT / "config" / "plant.yaml", encoding="utf-8") as fh:
+        return PlantParams.from_dict(yaml.safe_load(fh))
+
+
+def _best(f, repeat: int = 3) -> float:
+    best = math.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        f()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dict:
+    """Measure the issue #4 targets; returns a JSON-able dict (figures, targets, pass flags)."""
+    from .calibration import apply_state, calibrate, calibration_frame, spec_from_config
+    from .dpfit import fit_dp_clean
+    from .measured import process
+    from .optimize import optimize_setpoint
+    from .replay import replay
+    from .surrogate import Surrogate
+    from .synthetic import Noise, Operation, Truth, generate
+
+    params = params or _params()
+    out: dict = {"targets": TARGETS}
+
+    # ---- short history: commissioning, then fouled operation 10 days later -------------------
+    sh = generate(params, Operation(hours=6, commissioning_minutes=120, gap_after_commissioning_days=10),
+                  Truth(), Noise(), seed=21)
+    processed = process(sh.history, params)
+    usable = np.flatnonzero(processed["usable"].to_numpy())
+    m_init = np.zeros(len(processed), dtype=bool)
+    m_init[usable[:90]] = True
+    init_data = calibration_frame(sh.history, processed, m_init)
+    spec_i = spec_from_config(params.extra, "initial")
+    t = time.perf_counter()
+    res_i = calibrate(init_data, params, spec_i)
+    out["initial_calibration_90_s"] = time.perf_counter() - t
+    dp = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"])
+    fixed = apply_state(params, res_i.to_dict(), dp.to_dict())
+    m_win = np.zeros(len(processed), dtype=bool)
+    m_win[usable[usable >= 130][:120]] = True
+    win = calibration_frame(sh.history, processed, m_win)
+    spec_f = spec_from_config(params.extra, "fouling")
+    res_f = calibrate(win, fixed, spec_f)
+    out["fouling_calibration_120_s"] = _best(lambda: calibrate(win, fixed, spec_f))
+    truth_w = sh.truth[m_win]
+    adaptive = res_f.apply(fixed)
+    out["optimization_120_s"] = _best(lambda: optimize_setpoint(win, adaptive), repeat=2)
+    opt = optimize_setpoint(win, adaptive)
+    out["recovery"] = {
+        "CF_eva": res_i.params["CF_eva"], "CF_eva_true": sh.params.CF_eva,
+        "initial_warnings": res_i.warnings, "initial_model_evaluations": res_i.model_evaluations,
+        "R_th_f_K_per_kW": res_f.params["R_th_f_K_per_kW"],
+        "R_th_f_true": float(truth_w["R_th_f_K_per_kW"].mean()),
+        "CF_dp_f": res_f.params["CF_dp_f"], "CF_dp_f_true": float(truth_w["CF_dp_f"].mean()),
+        "dp_clean_r2": dp.r2, "p_m_opt_bar_a": opt.p_m_opt_bar_a, "p_m_gm_bar_a": opt.p_m_gm_bar_a,
+        "dCOP_opt_pct": opt.dCOP_opt_pct,
+    }
+
+    # ---- surrogate -----------------------------------------------------------------------------
+    sur = Surrogate.load(ROOT / "config" / "surrogate.json")
+    x = tuple(0.5 * (lo + hi) for lo, hi in sur.ranges)
+    n = 20000
+    out["surrogate_eval_us"] = min(timeit.repeat(lambda: sur.evaluate(*x), number=n, repeat=3)) / n * 1e6
+    out["surrogate_r2_test"] = sur.r2_test
+
+    # ---- replay --------------------------------------------------------------------------------
+    if replay_days > 0:
+        hours = replay_days * 24.0
+        cips = tuple(h for h in (9 * 24.0, 21 * 24.0) if h + 60 < hours)
+        op = Operation(hours=hours, commissioning_minutes=120, gap_after_commissioning_days=3,
+                       cip_starts_h=cips, cip_duration_h=60.0)
+        t = time.perf_counter()
+        long = generate(params, op, Truth(), Noise(), seed=22)
+        out["replay_history_generation_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        rr = replay(long.history, params, progress=progress)
+        out[f"replay_{replay_days:g}_days_s"] = time.perf_counter() - t
+        ok = rr.windows[rr.windows["status"] == "ok"]
+        ts = pd.to_datetime(long.truth["timestamp"], utc=True)
+        err_R, err_CF = [], []
+        for _, row in ok.iterrows():
+            m = ((ts >= pd.Timestamp(row["window_start"])) & (ts <= pd.Timestamp(row["window_end"]))).to_numpy()
+            err_R.append(abs(row["R_th_f_K_per_kW"] - long.truth["R_th_f_K_per_kW"][m].mean()))
+            err_CF.append(abs(row["CF_dp_f"] - long.truth["CF_dp_f"][m].mean()))
+        out["replay"] = {
+            "rows": rr.n_rows, "windows": len(ok), "cips": len(rr.cips),
+            "max_abs_error_R_th_f_K_per_kW": float(max(err_R)) if err_R else None,
+            "max_abs_error_CF_dp_f": float(max(err_CF)) if err_CF else None,
+            "cip_removed_pct": [float(v) for v in rr.cips["R_th_f_removed_pct"]],
+            "cip_removed_pct_true": [c["removed_pct"] for c in long.cips],
+            "nrmse_COP_fixed_mean": float(ok["nrmse_COP_fixed"].mean()),
+            "nrmse_COP_adaptive_mean": float(ok["nrmse_COP_adaptive"].mean()),
+            "seconds_per_window": out[f"replay_{replay_days:g}_days_s"] / max(len(ok), 1),
+        }
+    out["pass"] = {k: (out[k] <= v) for k, v in TARGETS.items() if k in out}
+    return out
+
+
+if __name__ == "__main__":   # pragma: no cover
+    import json
+    import sys
+    days = float(sys.argv[1]) if len(sys.argv) > 1 else 30.0
+    print(json.dumps(bench_analysis(replay_days=days), indent=2, default=float))

@@ -55,6 +55,7 @@ class ReplaySettings:
     initial_minutes: int = 90         # default initial window: the first 90 usable minutes
     cip_off_minutes: float = 360.0    # a plant stop longer than this counts as a CIP
     cip_windows: int = 1              # windows averaged on each side of a CIP
+    max_gap_minutes: float = 30.0     # a hole in the record longer than this ends a window segment
     optimize: bool = True
     dp_form: str = "auto"
 
@@ -78,7 +79,8 @@ class ReplaySettings:
             kw.setdefault("initial_minutes", ini["window_minutes"])
         kw.update({k: v for k, v in overrides.items() if v is not None})
         s = cls(**kw)
-        for name in ("window_hours", "min_samples", "initial_minutes", "cip_off_minutes", "cip_windows"):
+        for name in ("window_hours", "min_samples", "initial_minutes", "cip_off_minutes", "cip_windows",
+                     "max_gap_minutes"):
             v = getattr(s, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ReplayError(f"replay setting {name} must be a number > 0, got {v!r}")
@@ -255,6 +257,17 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
             segments.append((cur, c_["start"]))
         cur = max(cur, c_["end"])
     segments.append((cur, ts[-1] + pd.Timedelta(seconds=1)))
+    # a hole in the record longer than max_gap_minutes also ends a segment (it is not a CIP: the
+    # record says nothing about it)
+    gaps = np.flatnonzero((ts[1:] - ts[:-1]) > pd.Timedelta(minutes=s.max_gap_minutes))
+    if len(gaps):
+        notes.append(f"{len(gaps)} gap(s) in the record longer than {s.max_gap_minutes:g} min: "
+                     "windows do not span them")
+        cut = []
+        for a, b in segments:
+            pts = [a] + [ts[g + 1] for g in gaps if a < ts[g + 1] < b] + [b]
+            cut += list(zip(pts[:-1], pts[1:]))
+        segments = cut
     W = pd.Timedelta(hours=s.window_hours)
     plan: list[tuple[np.ndarray, bool]] = []      # (mask, first window after a CIP)
     skipped: dict[str, int] = {}

@@ -91,6 +91,11 @@ def test_initial_window_and_counts(result, history):
     assert abs(result.initial.params["CF_eva"] / history.params.CF_eva - 1) <= CF_EVA_REL_TOL
     assert result.unusable["cip"] == 360
     assert result.n_rows == len(history.history)
+    # the 10-day hole after commissioning ends a segment: no window spans it
+    assert any("gap" in n for n in result.notes)
+    after_gap = pd.Timestamp(history.history["timestamp"].iloc[120])
+    assert (pd.to_datetime(result.windows["window_start"], utc=True) >= after_gap).all()
+    assert result.windows_skipped == {"too few usable samples": 1}     # the commissioning tail
     text = result.summary()
     for word in ("initial calibration", "CIPs: 1", "COP NRMSE", "removed", "WARNING"):
         assert word in text

@@ -77,7 +77,6 @@ class GatewayConfig:
     advisory: AdvisoryConfig
     tags_file: Path
     plant_file: Path
-    ambient_pressure_bar: float
     scan_interval_s: float
     aggregate_s: float
     calibration_interval_s: float
@@ -154,7 +153,6 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         if plant is not None and not isinstance(plant, dict):
             p.add(_display(plant_path), None, None, "expected a mapping at the top level")
     cfg_kwargs = dict(
-        ambient_pressure_bar=top.number("ambient_pressure_bar", positive=True),
         optimizer=top.choice("optimizer", OPTIMIZERS),
         state_dir=top.path("state_dir", base),
         history_db=top.path("history_db", base),
@@ -171,7 +169,7 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
 
 
 _TOP_REQUIRED = (
-    "plc", "tags_file", "plant_file", "ambient_pressure_bar", "scan_interval_s", "aggregate_s",
+    "plc", "tags_file", "plant_file", "scan_interval_s", "aggregate_s",
     "calibration_interval_s", "calibration_window_h", "min_window_samples", "optimizer",
     "life_counter_tag", "state_dir", "history_db", "history_retention_days", "advisory",
 )

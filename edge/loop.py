@@ -158,6 +158,7 @@ class Gateway:
         self.snapshot = Snapshot()
         self.changed = asyncio.Event()   # set after every cycle (tests and the demo wait on it)
         self._stop = asyncio.Event()
+        self._wake = asyncio.Event()   # stop requested, or a calibration finished
         self._advice: Advice | None = None            # last good advice
         self._last_attempt: Advice | None = None      # last finished calibration cycle
         self._calibration: asyncio.Future | None = None
@@ -184,6 +185,7 @@ class Gateway:
         if not self._stop.is_set():
             log.info("stop requested")
         self._stop.set()
+        self._wake.set()
 
     async def startup(self) -> None:
         self._executor = concurrent.futures.ThreadPoolExecutor(
@@ -236,6 +238,9 @@ class Gateway:
     # ------------------------------------------------------------------------- main loop
 
     async def main_loop(self) -> None:
+        """Cycles every scan interval on the monotonic clock. A finished calibration wakes the
+        loop at once, so its advice is written within milliseconds (the cadence restarts from
+        that cycle); a stop request wakes it too."""
         period = self.cfg.scan_interval_s
         next_at = self._mono()
         while not self._stop.is_set():
@@ -248,12 +253,15 @@ class Gateway:
                           missed)
                 next_at += missed * period
             try:
-                await asyncio.wait_for(self._stop.wait(), max(0.0, next_at - self._mono()))
+                await asyncio.wait_for(self._wake.wait(), max(0.0, next_at - self._mono()))
+                next_at = self._mono()          # woken: a calibration finished (or stop)
             except asyncio.TimeoutError:
                 pass
 
     async def cycle(self) -> None:
         """One scan cycle: read, aggregate, store, calibrate (in the background), write."""
+        if not self._stop.is_set():
+            self._wake.clear()  # before collecting: a calibration finishing later wakes us again
         result = await self.plc.read_all()
         t_mono = self._mono()
         t_sample = self._sample_time(result)
@@ -300,6 +308,7 @@ class Gateway:
             return
         loop = asyncio.get_running_loop()
         self._calibration = loop.run_in_executor(self._executor, self.advisor.advise, t_end)
+        self._calibration.add_done_callback(lambda _f: self._wake.set())
         self._calibration_t = t_end
 
     def _collect_calibration(self) -> None:

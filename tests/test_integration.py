@@ -371,3 +371,11 @@ def test_run_command_survives_kill_9_and_stops_on_sigterm(sims, commissioned, tm
     assert rc == 0, err
     assert "stop requested" in err and "gateway stopped" in err
     json.loads((tmp_path / "state" / "fouling_calibration.json").read_text())   # not torn
+
+
+def test_bench_gateway_runs_and_reports_its_figures():
+    """Smoke test of the benchmark (figures are for `hp-edge bench`, not asserted here)."""
+    from edge.bench_gateway import bench_gateway
+    out = bench_gateway(plant_minutes=10, speed=600, warmup_minutes=10)
+    assert out["gateway_exit_code_on_sigterm"] == 0
+    assert out["cycles"] > 0 and out["gateway_rss_mb"] > 0 and out["gateway_cpu_s"] > 0

@@ -295,6 +295,23 @@ def test_calibration_never_blocks_the_event_loop(cfg):
     assert run(go()) == 0
 
 
+def test_finished_calibration_is_written_without_waiting_for_the_next_slot(cfg):
+    slow = replace(cfg, scan_interval_s=2.0)
+
+    async def go():
+        adv = FakeAdvisor(["ok"])
+        gw, plc = gateway(slow, adv)
+        task = asyncio.create_task(gw.run())
+        # cycle 1 at 0 s (scan pending), cycle 2 at 2 s closes a sample and starts the
+        # calibration; its advice is written by a woken cycle long before the 4-s slot
+        snap = await gw.wait_until(lambda s: s.advice_time is not None and s.writes_ok >= 3, 3.5)
+        gw.request_stop()
+        await task
+        return snap.writes_ok, plc.writes
+    n, writes = run(go())
+    assert decode_advisory(cfg.advisory, writes[2])["R_th_f"] == pytest.approx(3e-3)
+
+
 def test_sigterm_stops_gracefully_and_restores_the_previous_handler(cfg):
     seen = []
 

@@ -81,6 +81,20 @@ class Advice:
         return self.calibration_ok and self.optimization_ok and not self.skipped
 
 
+class Notifier:
+    """Life-cycle notifications for a supervisor; this one does nothing (edge.service.SdNotify
+    tells systemd: READY=1, WATCHDOG=1 every cycle, STOPPING=1)."""
+
+    def ready(self) -> None:
+        """Start-up done; the main loop begins."""
+
+    def alive(self) -> None:
+        """A scan cycle completed (the event loop is not stuck)."""
+
+    def stopping(self) -> None:
+        """Shutdown has begun."""
+
+
 class Advisor(Protocol):
     """What the loop needs from the model side (edge.service.ModelAdvisor is the real one)."""
 
@@ -130,13 +144,14 @@ class Gateway:
     monotonic, wall : clocks (injected in tests)
     install_signals : handle SIGTERM/SIGINT (only in the main thread)
     shutdown_timeout_s : how long shutdown waits for a running calibration
+    notifier : told when the gateway is ready, alive (every cycle) and stopping (systemd)
     """
 
     def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
                  time_source: str = "wall", clock_tag: str = "plc_clock",
                  monotonic: Callable[[], float] = time.monotonic,
                  wall: Callable[[], float] = time.time, install_signals: bool = True,
-                 shutdown_timeout_s: float = 10.0) -> None:
+                 shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None) -> None:
         if time_source not in TIME_SOURCES:
             raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
         tag_names = {t.name for t in cfg.tags}
@@ -168,6 +183,7 @@ class Gateway:
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._saved_signals: dict[int, Any] = {}
         self.exit_code = 0
+        self.notifier = notifier or Notifier()
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -197,12 +213,14 @@ class Gateway:
             self._advice = restored
             self._calibration_due = restored.t + self.cfg.calibration_interval_s
             log.info("restored advice of %s", _fmt_time(restored.t))
+        self.notifier.ready()
         log.info("gateway started: PLC %s:%s, scan %g s, sample clock %s, optimizer %s",
                  self.plc.plc.host, self.plc.plc.port, self.cfg.scan_interval_s,
                  self.time_source, self.cfg.optimizer)
 
     async def shutdown(self) -> None:
         """Wait (bounded) for a running calibration, close the PLC connection, restore signals."""
+        self.notifier.stopping()
         if self._calibration is not None and not self._calibration.done():
             log.info("waiting up to %g s for the running calibration", self.shutdown_timeout_s)
             try:
@@ -277,6 +295,7 @@ class Gateway:
         await self._write(bits, t_sample)
         snap = self.snapshot
         snap.cycles += 1
+        self.notifier.alive()
         snap.sample_time = t_sample if t_sample is not None else snap.sample_time
         snap.comm_error = result.comm_error
         snap.last_scan = {n: v.value for n, v in result.values.items()}

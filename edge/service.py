@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
+import socket
 import sqlite3
 import threading
 import time
@@ -33,7 +35,7 @@ import pandas as pd
 from edge import statefiles
 from edge.aggregate import Sample, sample_row
 from edge.config import GatewayConfig
-from edge.loop import Advice, Gateway
+from edge.loop import Advice, Gateway, Notifier
 from edge.statefiles import StateError
 from edge.store import HistoryStore
 from model import measured
@@ -358,6 +360,44 @@ def _iso(ts: float) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(float(ts)))
 
 
+class SdNotify(Notifier):
+    """systemd's notify protocol (``Type=notify``, ``WatchdogSec=``) without a dependency: one
+    datagram per message to $NOTIFY_SOCKET. WATCHDOG=1 is sent at most every half watchdog
+    interval, from the event loop after each completed cycle, so a hung loop gets the service
+    restarted. Outside systemd (no NOTIFY_SOCKET) it does nothing."""
+
+    def __init__(self, environ: dict | None = None) -> None:
+        env = os.environ if environ is None else environ
+        addr = env.get("NOTIFY_SOCKET")
+        self._addr = ("\0" + addr[1:]) if addr and addr.startswith("@") else addr
+        usec = env.get("WATCHDOG_USEC", "")
+        self._every = int(usec) / 2e6 if usec.isdigit() and int(usec) > 0 else None
+        self._last = -math.inf
+
+    def _send(self, msg: str) -> None:
+        if not self._addr:
+            return
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+                s.sendto(msg.encode(), self._addr)
+        except OSError as exc:
+            log.warning("systemd notification %r failed: %s", msg, exc)
+
+    def ready(self) -> None:
+        self._send("READY=1")
+
+    def alive(self) -> None:
+        if self._every is None:
+            return
+        now = time.monotonic()
+        if now - self._last >= self._every:
+            self._last = now
+            self._send("WATCHDOG=1")
+
+    def stopping(self) -> None:
+        self._send("STOPPING=1")
+
+
 class GatewayService:
     """Everything ``hp-edge run`` starts: history store, state, model advisor, gateway loop.
 
@@ -378,7 +418,7 @@ class GatewayService:
             self.advisor = ModelAdvisor(cfg, self.store, state)
             self.gateway = Gateway(cfg, self.advisor, plc=plc, time_source=time_source,
                                    install_signals=install_signals,
-                                   shutdown_timeout_s=shutdown_timeout_s)
+                                   shutdown_timeout_s=shutdown_timeout_s, notifier=SdNotify())
         except BaseException:
             self.store.close()
             raise

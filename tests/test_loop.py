@@ -351,3 +351,28 @@ def test_shutdown_does_not_wait_forever_for_a_stuck_solver(cfg):
 def test_arguments_are_checked(cfg):
     with pytest.raises(ValueError):
         Gateway(cfg, FakeAdvisor(), plc=FakePlc(cfg), time_source="sundial")
+
+
+def test_systemd_notifications_ready_watchdog_stopping(cfg, tmp_path):
+    import socket
+
+    from edge.service import SdNotify
+
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    sock.settimeout(2.0)
+    try:
+        notifier = SdNotify({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1"})
+
+        async def go():
+            gw, plc = gateway(cfg, notifier=notifier)
+            await gw.startup()
+            await cycles(gw, 2)
+            await gw.shutdown()
+        run(go())
+        got = [sock.recv(64).decode() for _ in range(4)]
+    finally:
+        sock.close()
+    assert got == ["READY=1", "WATCHDOG=1", "WATCHDOG=1", "STOPPING=1"]
+    SdNotify({}).ready()          # outside systemd: nothing, no error

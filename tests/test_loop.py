@@ -3,6 +3,7 @@ last good advice kept on failure, calibration off the event loop, signals and sh
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import signal
 import threading
@@ -376,3 +377,85 @@ def test_systemd_notifications_ready_watchdog_stopping(cfg, tmp_path):
         sock.close()
     assert got == ["READY=1", "WATCHDOG=1", "WATCHDOG=1", "STOPPING=1"]
     SdNotify({}).ready()          # outside systemd: nothing, no error
+
+
+# ------------------------------------------------------------------ the model side (ModelAdvisor)
+
+ADVICE_FIELDS = {"p_m_sp_rec", "dCOP_pct", "dQ_sink_pct", "p_m_gm", "R_th_f", "R_th_f_share",
+                 "CF_dp_f", "dp_fouling", "COP_measured", "COP_adaptive", "COP_fixed", "nrmse_pct"}
+
+
+@pytest.fixture(scope="module")
+def plant_minutes():
+    """2.2 h of the simulator's plant as one-minute samples (what the aggregator would emit)."""
+    import math as _m
+
+    from edge.aggregate import Sample
+    from simulator.export import export_history
+
+    hist = export_history(2.2 / 24).history
+    out = []
+    for rec in hist.to_dict("records"):
+        ts = pd_ts(rec.pop("timestamp"))
+        vals = {k: float(v) for k, v in rec.items()}
+        bad = {k: "nan" for k, v in vals.items() if not _m.isfinite(v)}
+        out.append(Sample(ts, vals, bad, 12, 12, 0, 0, ""))
+    return out
+
+
+def pd_ts(text: str) -> float:
+    from datetime import datetime
+    return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+
+
+def advisor_for(tmp_path, **kw):
+    from edge.service import ModelAdvisor, StateDir
+    from edge.store import HistoryStore
+
+    full = load_config(ROOT / "config" / "gateway.yaml")
+    c = replace(full, state_dir=tmp_path / "state", history_db=tmp_path / "h.sqlite", **kw)
+    store = HistoryStore(c.history_db, c.history_retention_days).open()
+    try:
+        return ModelAdvisor(c, store, StateDir(c.state_dir, ROOT / "config" / "surrogate.json")), store
+    except BaseException:
+        store.close()
+        raise
+
+
+@pytest.mark.parametrize("optimizer", ["model", "surrogate"])
+def test_model_advisor_ingests_calibrates_optimizes_and_restores(plant_minutes, tmp_path,
+                                                                 optimizer):
+    adv, store = advisor_for(tmp_path, optimizer=optimizer)
+    try:
+        assert not adv.has_calibration
+        for k in range(0, len(plant_minutes), 7):        # the loop hands over a few at a time
+            adv.ingest(plant_minutes[k:k + 7])
+        assert store.count() == len(plant_minutes)
+        t_end = plant_minutes[-1].timestamp + 60
+        few = adv.advise(plant_minutes[20].timestamp)
+        assert few.skipped and "usable samples" in few.message
+        a = adv.advise(t_end)
+        assert a.ok, a.message
+        assert set(a.values) == ADVICE_FIELDS
+        assert all(math.isfinite(v) for v in a.values.values())
+        assert 1.5e-3 < a.values["R_th_f"] < 4e-3 and a.values["CF_dp_f"] >= 1.0
+        assert a.detail["optimization"]["optimizer"] == optimizer
+        assert adv.has_calibration and (tmp_path / "state" / "fouling_calibration.json").exists()
+    finally:
+        store.close()
+    again, store = advisor_for(tmp_path, optimizer=optimizer)
+    try:
+        r = again.restored()
+        assert again.has_calibration
+        assert r.t == t_end and r.values["R_th_f"] == pytest.approx(a.values["R_th_f"])
+    finally:
+        store.close()
+
+
+def test_unreadable_commissioning_state_stops_the_start(tmp_path):
+    from edge.service import StartupError
+
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "initial_calibration.json").write_text("{ torn")
+    with pytest.raises(StartupError, match="initial_calibration.json"):
+        advisor_for(tmp_path)

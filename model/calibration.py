@@ -518,7 +518,7 @@ def calibrate(data: pd.DataFrame, params: PlantParams, spec: CalibrationSpec,
     def penalty(x):
         return 0.0 if prev is None else float(spec.change_penalty * np.sum((x - prev) ** 2))
 
-    e0, s0 = stats(x0)
+    _, s0 = stats(x0)
     F = float(weights @ s0) + penalty(x0)
     x = np.clip(x0, START_NUDGE, 1.0 - START_NUDGE)
     alpha = weights / np.maximum(s0, NRMSE_FLOOR)

@@ -114,3 +114,19 @@ def test_cli_export(tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["rows"] == 36 and info["seed"] == 3
     assert len(pd.read_csv(tmp_path / "h.csv")) == 36 == len(pd.read_csv(tmp_path / "t.csv"))
+
+
+def test_cli_export_starts_at_commissioning_unless_asked(tmp_path, capsys):
+    # replay's default initial window is "the first 90 usable minutes, which commissioning data
+    # are": an export therefore starts with a clean evaporator unless --start-fouled is given
+    main(["simulate", "--export", str(tmp_path / "h.csv"), "--days", "0.01",
+          "--truth", str(tmp_path / "t.csv"), "--seed", "3"])
+    clean = pd.read_csv(tmp_path / "t.csv")
+    main(["simulate", "--export", str(tmp_path / "h2.csv"), "--days", "0.01",
+          "--truth", str(tmp_path / "t2.csv"), "--seed", "3", "--start-fouled"])
+    fouled = pd.read_csv(tmp_path / "t2.csv")
+    capsys.readouterr()
+    r_col = [c for c in clean.columns if c.startswith("R_th_f")][0]
+    cf_col = [c for c in clean.columns if c.startswith("CF_dp_f")][0]
+    assert clean[r_col].iloc[0] < 1e-5 and clean[cf_col].iloc[0] == pytest.approx(1.0, abs=1e-4)
+    assert fouled[r_col].iloc[0] == pytest.approx(2.5e-3, rel=0.01)

@@ -30,6 +30,10 @@ def register(sub) -> None:
     p.add_argument("--export", default=None, metavar="CSV", help="write a history CSV instead of serving")
     p.add_argument("--days", type=float, default=30.0, help="plant days to export (30)")
     p.add_argument("--truth", default=None, metavar="CSV", help="with --export: also write the hidden truth")
+    p.add_argument("--start-fouled", action="store_true",
+                   help="with --export: start from the configured fouling instead of a clean "
+                        "evaporator (by default an export begins at commissioning, so that replay's "
+                        "default initial window is clean, as commissioning data are)")
     p.set_defaults(func=cmd_simulate)
 
 
@@ -51,10 +55,14 @@ def cmd_simulate(args) -> int:
     if args.export:
         if not args.days > 0:
             return _fail("--days must be > 0")
+        import dataclasses
         from simulator.export import export_history
-        res = export_history(args.days, args.export, cfg=cfg.replace(faults=cfg.faults + tuple(
-            f for f in faults if f.kind in ("stuck", "out_of_range", "nan", "frozen"))),
-            truth_path=args.truth)
+        cfg = cfg.replace(faults=cfg.faults + tuple(
+            f for f in faults if f.kind in ("stuck", "out_of_range", "nan", "frozen")))
+        if not args.start_fouled:
+            cfg = cfg.replace(fouling=dataclasses.replace(
+                cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
+        res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
         print(json.dumps({"history": args.export, "truth": args.truth, "rows": res.rows,
                           "days": args.days, "seed": cfg.seed, "seconds": round(res.seconds, 2)}))
         return 0

@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 
 TIME_SOURCES = ("wall", "plc")
 ADVICE_STALE_INTERVALS = 1.5
+MAX_FAILED_CYCLES = 10      # consecutive cycles raising an unexpected error: exit code 1
 STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_failed",
                 "model_infeasible", "comm_fault", "advice_stale")
 # advisory fields the loop fills itself; an advisor provides the others
@@ -261,8 +262,20 @@ class Gateway:
         that cycle); a stop request wakes it too."""
         period = self.cfg.scan_interval_s
         next_at = self._mono()
+        failures = 0
         while not self._stop.is_set():
-            await self.cycle()
+            try:
+                await self.cycle()
+                failures = 0
+            except Exception as exc:  # noqa: BLE001 - a bug must not stop the advisory at once
+                failures += 1
+                self.snapshot.errors += 1
+                log.exception("scan cycle failed (%d in a row): %s", failures, exc)
+                if failures >= MAX_FAILED_CYCLES:
+                    log.critical("%d scan cycles failed in a row: exiting so that the service "
+                                 "manager restarts a fresh process", failures)
+                    self.exit_code = 1
+                    break
             next_at += period
             now = self._mono()
             if now > next_at:   # overran (slow PLC, slow disk): skip the missed slots
@@ -323,6 +336,12 @@ class Gateway:
         t_end = self._last_sample_end
         if t_end is None or (self._calibration is not None and not self._calibration.done()):
             return
+        if t_end < self._calibration_due - self.cfg.calibration_interval_s:
+            # the sample clock went back behind the last calibration (PLC clock reset, replaced
+            # simulator): calibrate on the new clock instead of waiting for the old one
+            log.warning("sample clock %s is before the last calibration's window end; "
+                        "calibrating on the new clock", _fmt_time(t_end))
+            self._calibration_due = -math.inf
         if t_end < self._calibration_due:
             return
         loop = asyncio.get_running_loop()

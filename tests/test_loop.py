@@ -459,3 +459,29 @@ def test_unreadable_commissioning_state_stops_the_start(tmp_path):
     (tmp_path / "state" / "initial_calibration.json").write_text("{ torn")
     with pytest.raises(StartupError, match="initial_calibration.json"):
         advisor_for(tmp_path)
+
+
+def test_a_failing_cycle_is_logged_and_ten_in_a_row_exit_1(cfg):
+    class Broken(FakePlc):
+        async def read_all(self):
+            raise KeyError("bug")
+
+    async def go():
+        gw, plc = gateway(cfg, plc=Broken(cfg))
+        return await gw.run(), gw
+    rc, gw = run(go())
+    assert rc == 1 and gw.snapshot.errors == 10
+
+
+def test_sample_clock_going_back_does_not_block_calibration(cfg):
+    async def go():
+        adv = FakeAdvisor(["ok", "ok"])
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        await _advise_until(gw, plc, adv, 1)
+        plc.t -= 10 * 3600.0                 # PLC clock reset / a fresh simulator
+        await _advise_until(gw, plc, adv, 2)
+        await gw.shutdown()
+        return adv.calls
+    calls = run(go())
+    assert calls[1] < calls[0]

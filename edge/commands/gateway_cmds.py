@@ -360,7 +360,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     except StartupError as exc:
         print(f"{exc}; nothing was started.", file=sys.stderr)
         return 2
-    return asyncio.run(service.run())
+    try:
+        return asyncio.run(service.run())
+    except KeyboardInterrupt:   # Ctrl-C before the gateway's own handler was installed
+        return 130
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

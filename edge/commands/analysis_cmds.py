@@ -48,7 +48,7 @@ def register(sub) -> None:
     fs = sub.add_parser("fit-surrogate", help="fit the 27-term set-point surrogate on model optima",
                         description="Fit the p_m,sp surrogate (SPEC §6) on optimization results of the "
                                     "model over fouling levels and operating points; prints R^2 on the "
-                                    "held-out 30 %% and saves the coefficients.")
+                                    "held-out 30 % and saves the coefficients.")
     fs.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
     fs.add_argument("--state-dir", default=DEFAULT_STATE_DIR,
                     help=f"state directory; its initial calibration is used when present ({DEFAULT_STATE_DIR})")

@@ -179,6 +179,8 @@ class Gateway:
         self._last_attempt: Advice | None = None      # last finished calibration cycle
         self._calibration: asyncio.Future | None = None
         self._calibration_due = -math.inf             # sample clock
+        self._skipped_at: float | None = None         # window end of the last skipped attempt
+        self._skipping = False                        # in a run of skipped attempts (logging)
         self._comm_since_write = False
         self._last_sample_end: float | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -344,10 +346,17 @@ class Gateway:
             self._calibration_due = -math.inf
         if t_end < self._calibration_due:
             return
+        if self._skipped_at is not None and t_end <= self._skipped_at:
+            return      # skipped for too few samples: try again with the next sample
         loop = asyncio.get_running_loop()
         self._calibration = loop.run_in_executor(self._executor, self.advisor.advise, t_end)
-        self._calibration.add_done_callback(lambda _f: self._wake.set())
+        self._calibration.add_done_callback(self._calibration_done)
         self._calibration_t = t_end
+
+    def _calibration_done(self, fut: asyncio.Future) -> None:
+        """Wake the loop to write new advice (or a failure) at once; a skip has nothing to show."""
+        if fut.cancelled() or fut.exception() is not None or not fut.result().skipped:
+            self._wake.set()
 
     def _collect_calibration(self) -> None:
         fut = self._calibration
@@ -364,9 +373,14 @@ class Gateway:
                          message=f"{type(exc).__name__}: {exc}")
         if adv.skipped:
             # nothing attempted (too few usable samples): look again at the next sample
-            log.info("calibration at %s skipped: %s", _fmt_time(t_end), adv.message)
+            self._skipped_at = t_end
+            # the first skip of a run is news; the repeats (a CIP lasts days) go to debug
+            log.log(logging.DEBUG if self._skipping else logging.INFO,
+                    "calibration at %s skipped: %s", _fmt_time(t_end), adv.message)
+            self._skipping = True
             self.snapshot.advice_message = adv.message
             return
+        self._skipping = False
         self._calibration_due = t_end + self.cfg.calibration_interval_s
         self._last_attempt = adv
         self.snapshot.calibrations += 1

@@ -38,8 +38,9 @@ GOOD = {"T_sink_in": 40.0, "T_sink_out": 68.0, "T_source_in": 24.0, "T_source_ou
 class FakePlc:
     """Plays the PLC: every read advances a fake clock by one minute of plant time."""
 
-    def __init__(self, cfg, t0: float = 1_709_251_200.0):
+    def __init__(self, cfg, t0: float = 1_709_251_200.0, step: float = 60.0):
         self.plc, self.advisory = cfg.plc, cfg.advisory
+        self.step = step
         self.tags = cfg.tags
         self.t = t0
         self.life = 0
@@ -51,7 +52,7 @@ class FakePlc:
         self.closed = False
 
     async def read_all(self) -> ReadResult:
-        self.t += 60.0
+        self.t += self.step
         if self.fail_reads:
             self.fail_reads -= 1
             self.connected = False
@@ -485,3 +486,19 @@ def test_sample_clock_going_back_does_not_block_calibration(cfg):
         return adv.calls
     calls = run(go())
     assert calls[1] < calls[0]
+
+
+def test_a_skipped_calibration_waits_for_the_next_sample(cfg):
+    # plant clock 10 s per scan: a sample closes every 6 cycles; a skip must not be retried
+    # (or wake the loop) before the next one
+    async def go():
+        adv = FakeAdvisor()                     # always "skip"
+        gw, plc = gateway(cfg, adv, plc=FakePlc(cfg, step=10.0))
+        task = asyncio.create_task(gw.run())
+        await gw.wait_until(lambda s: s.cycles >= 60, 10)
+        gw.request_stop()
+        await task
+        return adv.calls, gw.snapshot
+    calls, snap = run(go())
+    assert 5 <= len(calls) <= snap.samples
+    assert len(set(calls)) == len(calls)

@@ -82,63 +82,83 @@ def commission(state_dir: Path, plant_file: Path, sim_cfg=None, minutes: float =
 
 async def run_demo(config: Path, minutes: float | None = None, speed: float = DEMO_SPEED,
                    state_dir: Path | None = None, refresh_s: float = REFRESH_S,
-                   out: TextIO = sys.stdout, commissioning: bool = True) -> int:
+                   out: TextIO | None = None, commissioning: bool = True) -> int:
     """Run simulator + gateway until Ctrl-C / SIGTERM, or ``minutes`` of wall time."""
     from edge.config import load_config
-    from edge.service import GatewayService
-    from simulator.server import PlantSimulator
+
+    out = out or sys.stdout
 
     cfg = load_config(config)
     with tempfile.TemporaryDirectory(prefix="hp-edge-demo-") as tmp:
         where = Path(state_dir) if state_dir else Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
-        _log_to_file(where / "demo.log")
-        if commissioning:
-            _print(out, "commissioning: initial calibration on 100 min of clean-evaporator plant "
-                        "operation ...\n")
-            rep = await asyncio.to_thread(commission, where / "state", cfg.plant_file)
-            p = rep["initial"]["params"]
-            _print(out, "commissioning: " + ", ".join(f"{k} {v:.3f}" for k, v in p.items())
-                   + f" (NRMSE {100 * rep['initial']['objective']:.2f} %)\n")
-        sim = PlantSimulator(port=0, speed=speed)
-        await sim.start()
+        with _demo_logging(where / "demo.log"):
+            return await _demo(cfg, where, speed, minutes, refresh_s, out, commissioning)
+
+
+async def _demo(cfg, where: Path, speed: float, minutes: float | None, refresh_s: float,
+                out: TextIO, commissioning: bool) -> int:
+    from edge.service import GatewayService
+    from simulator.server import PlantSimulator
+
+    if commissioning:
+        _print(out, "commissioning: initial calibration on 100 min of clean-evaporator plant "
+                    "operation ...\n")
+        rep = await asyncio.to_thread(commission, where / "state", cfg.plant_file)
+        p = rep["initial"]["params"]
+        _print(out, "commissioning: " + ", ".join(f"{k} {v:.3f}" for k, v in p.items())
+               + f" (NRMSE {100 * rep['initial']['objective']:.2f} %)\n")
+    sim = PlantSimulator(port=0, speed=speed)
+    await sim.start()
+    try:
+        dcfg = demo_config(cfg, sim.port, where)
+        service = GatewayService(dcfg, time_source="plc", install_signals=True)
+        gw = service.gateway
+        run = asyncio.create_task(service.run(), name="hp-edge-gateway")
+        view = asyncio.create_task(_view(sim, gw, dcfg, refresh_s, out, where, speed))
+        timer = None
+        if minutes is not None:
+            timer = asyncio.get_running_loop().call_later(minutes * 60.0, gw.request_stop)
         try:
-            dcfg = demo_config(cfg, sim.port, where)
-            service = GatewayService(dcfg, time_source="plc", install_signals=True)
-            gw = service.gateway
-            run = asyncio.create_task(service.run(), name="hp-edge-gateway")
-            view = asyncio.create_task(_view(sim, gw, dcfg, refresh_s, out, where, speed))
-            timer = None
-            if minutes is not None:
-                timer = asyncio.get_running_loop().call_later(minutes * 60.0, gw.request_stop)
-            try:
-                rc = await run
-            finally:
-                if timer is not None:
-                    timer.cancel()
-                view.cancel()
-                await asyncio.gather(view, return_exceptions=True)
-            _print(out, _render(sim, gw, dcfg, await _read_block(sim, dcfg), where, speed,
-                                final=True))
-            writes_outside = sim.writes_outside(dcfg.advisory.start, dcfg.advisory.size)
-            if writes_outside:
-                log.error("writes outside the advisory block: %s", writes_outside)
-                return 1
-            return rc
+            rc = await run
         finally:
-            await sim.stop()
+            if timer is not None:
+                timer.cancel()
+            view.cancel()
+            await asyncio.gather(view, return_exceptions=True)
+        _print(out, _render(sim, gw, dcfg, await _read_block(sim, dcfg), where, speed,
+                            final=True))
+        writes_outside = sim.writes_outside(dcfg.advisory.start, dcfg.advisory.size)
+        if writes_outside:
+            log.error("writes outside the advisory block: %s", writes_outside)
+            return 1
+        return rc
+    finally:
+        await sim.stop()
 
 
-def _log_to_file(path: Path) -> None:
+@contextlib.contextmanager
+def _demo_logging(path: Path):
+    """Everything to the log file; the console shows problems only (restored afterwards)."""
     root = logging.getLogger()
-    root.setLevel(logging.INFO)
     fh = logging.FileHandler(path, encoding="utf-8")
     fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    saved = [(root, root.level)] + [(h, h.level) for h in root.handlers
+                                    if type(h) is logging.StreamHandler]
+    pymodbus = logging.getLogger("pymodbus")
+    saved.append((pymodbus, pymodbus.level))
+    root.setLevel(logging.INFO)
+    for h, _ in saved[1:-1]:
+        h.setLevel(logging.WARNING)
+    pymodbus.setLevel(logging.ERROR)
     root.addHandler(fh)
-    logging.getLogger("pymodbus").setLevel(logging.ERROR)
-    for h in root.handlers:          # the console shows problems only; the log file has all
-        if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler):
-            h.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        root.removeHandler(fh)
+        fh.close()
+        for obj, level in saved:
+            obj.setLevel(level)
 
 
 async def _read_block(sim, cfg: GatewayConfig) -> dict:

@@ -383,3 +383,12 @@ def test_bench_gateway_runs_and_reports_its_figures():
     out = bench_gateway(plant_minutes=10, speed=600, warmup_minutes=10)
     assert out["gateway_exit_code_on_sigterm"] == 0
     assert out["cycles"] > 0 and out["gateway_rss_mb"] > 0 and out["gateway_cpu_s"] > 0
+
+
+def test_demo_stops_by_itself_and_shows_the_block(capsys):
+    rc = cli_main(["demo", "--minutes", "0.12", "--speed", "300", "--refresh", "2",
+                   "--no-commissioning"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "heartbeat" in out and "simulator truth" in out and "[ ] comm_fault" in out
+    assert out.rstrip().endswith("all inside the advisory block")

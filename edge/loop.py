@@ -19,7 +19,7 @@ Freshness (max age, frozen life counter) is always judged on the monotonic clock
 Status bits (gateway.yaml ``advisory.status_bits``; names are what matters, numbers are config):
 
 - ``data_stale``: a tag has not been read good for its ``max_age_s``, or the life counter froze;
-- ``heat_pump_off``: the running flag reads 0;
+- ``heat_pump_off``: the running flag reads 0 (without a good running flag: W_LS + W_HS < 20 kW);
 - ``cip_detected``: the CIP flag reads 1;
 - ``calibration_failed``: no fouling calibration yet (none restored from the state directory),
   or the last one failed;
@@ -52,6 +52,8 @@ log = logging.getLogger(__name__)
 TIME_SOURCES = ("wall", "plc")
 ADVICE_STALE_INTERVALS = 1.5
 MAX_FAILED_CYCLES = 10      # consecutive cycles raising an unexpected error: exit code 1
+MIN_POWER_KW = 20.0         # no running flag: below this compressor power the plant is off
+                            # (the same threshold as model.measured.MIN_POWER_KW)
 STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_failed",
                 "model_infeasible", "comm_fault", "advice_stale")
 # advisory fields the loop fills itself; an advisor provides the others
@@ -399,8 +401,14 @@ class Gateway:
         if fresh.data_stale or result.comm_error is not None:
             bits.add("data_stale")
         running = result.values.get("running")
-        if running is not None and running.bad is None and running.value < 0.5:
-            bits.add("heat_pump_off")
+        if running is not None and running.bad is None:
+            if running.value < 0.5:
+                bits.add("heat_pump_off")
+        else:   # no running flag: infer it from the compressor power, as the model side does
+            power = [result.values.get(n) for n in ("W_LS", "W_HS")]
+            if all(p is not None and p.bad is None for p in power) and \
+                    sum(p.value for p in power) < MIN_POWER_KW:
+                bits.add("heat_pump_off")
         cip = result.values.get("cip")
         if cip is not None and cip.bad is None and cip.value > 0.5:
             bits.add("cip_detected")

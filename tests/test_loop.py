@@ -282,6 +282,22 @@ def test_bad_values_flags_off_and_cip(cfg):
     assert {"heat_pump_off", "cip_detected"} <= set(last["status_bits"])
 
 
+def test_heat_pump_off_is_inferred_from_power_without_a_running_flag(cfg):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        plc.override = {"running": TagValue("running", None, "timeout"),
+                        "W_LS": TagValue("W_LS", 0.0), "W_HS": TagValue("W_HS", 3.0)}
+        await cycles(gw, 1)
+        off = plc.last()
+        plc.override = {"running": TagValue("running", None, "timeout")}
+        await cycles(gw, 1)
+        await gw.shutdown()
+        return off, plc.last()
+    off, on = run(go())
+    assert "heat_pump_off" in off["status_bits"] and "heat_pump_off" not in on["status_bits"]
+
+
 def test_calibration_never_blocks_the_event_loop(cfg):
     async def go():
         adv = FakeAdvisor(["ok"], delay_s=0.5)

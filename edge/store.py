@@ -36,8 +36,8 @@ log = logging.getLogger(__name__)
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 SAMPLE_TEXT = ("reason", "quality", "bad")
 SAMPLE_INT = ("usable", "scans", "good_scans")
-ADVICE_TEXT = ("status_bits", "detail")
-ADVICE_INT = ("ok",)
+ADVICE_TEXT = ("status_bits", "detail", "message")
+ADVICE_INT = ("ok", "calibration_ok", "optimization_ok")
 BUSY_TIMEOUT_S = 5.0
 
 

@@ -45,7 +45,7 @@ from typing import Any, Protocol
 from edge.advisory import encode_advisory
 from edge.aggregate import Aggregator, Freshness, Sample, sample_row
 from edge.config import GatewayConfig
-from edge.plc import PlcClient, PlcError, ReadResult
+from edge.plc import PlcClient, PlcError, PlcExceptionReply, ReadResult
 
 log = logging.getLogger(__name__)
 
@@ -184,6 +184,7 @@ class Gateway:
         self._skipped_at: float | None = None         # window end of the last skipped attempt
         self._skipping = False                        # in a run of skipped attempts (logging)
         self._comm_since_write = False
+        self._write_refused = False                   # the PLC answered a write with an exception
         self._last_sample_end: float | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._saved_signals: dict[int, Any] = {}
@@ -456,11 +457,25 @@ class Gateway:
             return
         try:
             await self.plc.write_advisory(words)
-        except PlcError as exc:
+        except PlcExceptionReply as exc:
+            # the PLC refuses the block (not mapped, write-protected): say so once per run
+            snap.writes_failed += 1
+            self._comm_since_write = True
+            if not self._write_refused:
+                log.error("the PLC refuses the advisory block write: %s (repeats at debug "
+                          "level)", exc)
+            else:
+                log.debug("advisory write refused: %s", exc)
+            self._write_refused = True
+            return
+        except PlcError as exc:   # no answer: edge.plc logs the connection trouble
             snap.writes_failed += 1
             self._comm_since_write = True
             log.debug("advisory write failed: %s", exc)
             return
+        if self._write_refused:
+            log.warning("the PLC accepts the advisory block again")
+            self._write_refused = False
         snap.writes_ok += 1
         self._comm_since_write = False   # this write carried the comm_fault bit, if it was due
 

@@ -518,3 +518,21 @@ def test_a_skipped_calibration_waits_for_the_next_sample(cfg):
     calls, snap = run(go())
     assert 5 <= len(calls) <= snap.samples
     assert len(set(calls)) == len(calls)
+
+
+def test_a_refused_block_write_is_logged_once_and_counted(cfg, caplog):
+    from edge.plc import PlcExceptionReply
+
+    class Refusing(FakePlc):
+        async def write_advisory(self, words):
+            raise PlcExceptionReply(2, 16, 1000, len(words))
+
+    async def go():
+        gw, plc = gateway(cfg, plc=Refusing(cfg))
+        await gw.startup()
+        await cycles(gw, 3)
+        await gw.shutdown()
+        return gw
+    gw = run(go())
+    assert gw.snapshot.writes_failed == 3 and gw.snapshot.writes_ok == 0
+    assert caplog.text.count("refuses the advisory block") == 1

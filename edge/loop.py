@@ -43,7 +43,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from edge.advisory import encode_advisory
-from edge.aggregate import Aggregator, Freshness, Sample, sample_row
+from edge.aggregate import Aggregator, Freshness, Sample
 from edge.config import GatewayConfig
 from edge.plc import PlcClient, PlcError, PlcExceptionReply, ReadResult
 
@@ -144,7 +144,8 @@ class Gateway:
     plc : a PlcClient (default: from cfg)
     time_source : 'wall' (production) or 'plc' (sample clock = the PLC's clock register)
     clock_tag : the tag that holds the PLC clock (uint32 epoch seconds)
-    monotonic, wall : clocks (injected in tests)
+    monotonic : the clock of the scan cadence and of freshness (injected in tests); the sample
+        clock comes from the scans (ReadResult.timestamp or the PLC clock register)
     install_signals : handle SIGTERM/SIGINT (only in the main thread)
     shutdown_timeout_s : how long shutdown waits for a running calibration
     notifier : told when the gateway is ready, alive (every cycle) and stopping (systemd)
@@ -152,8 +153,7 @@ class Gateway:
 
     def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
                  time_source: str = "wall", clock_tag: str = "plc_clock",
-                 monotonic: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time, install_signals: bool = True,
+                 monotonic: Callable[[], float] = time.monotonic, install_signals: bool = True,
                  shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None) -> None:
         if time_source not in TIME_SOURCES:
             raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
@@ -164,7 +164,7 @@ class Gateway:
         self.advisor = advisor
         self.plc = plc or PlcClient.from_config(cfg)
         self.time_source, self.clock_tag = time_source, clock_tag
-        self._mono, self._wall = monotonic, wall
+        self._mono = monotonic
         self.install_signals = install_signals
         self.shutdown_timeout_s = shutdown_timeout_s
         configured = {name for _, name in cfg.advisory.status_bits}
@@ -180,6 +180,7 @@ class Gateway:
         self._advice: Advice | None = None            # last good advice
         self._last_attempt: Advice | None = None      # last finished calibration cycle
         self._calibration: asyncio.Future | None = None
+        self._calibration_t = math.nan                # window end of the running calibration
         self._calibration_due = -math.inf             # sample clock
         self._skipped_at: float | None = None         # window end of the last skipped attempt
         self._skipping = False                        # in a run of skipped attempts (logging)

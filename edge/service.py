@@ -293,7 +293,7 @@ class ModelAdvisor:
         ok = solved_mask(ref)
         if not ok.any():
             raise OptimizationError("the adaptive model solves none of the window's samples at "
-                                    f"the surrogate's reference set point")
+                                    "the surrogate's reference set point")
         r = ref[ok]
         eta = float((r["eta_is_LS"] * r["eta_is_HS"]).mean())
         p_e, p_c = float(r["p_e_bar"].mean()), float(r["p_c_bar"].mean())

@@ -120,6 +120,9 @@ class ModelAdvisor:
     def __init__(self, cfg: GatewayConfig, store: HistoryStore, state_io: Any) -> None:
         if cfg.plant is None:
             raise ValueError("the gateway configuration was loaded without its plant file")
+        if cfg.aggregate_s < 1.0:
+            raise StartupError(f"{cfg.path}: aggregate_s {cfg.aggregate_s:g} s: the history keeps "
+                               "whole seconds; use at least 1 s")
         self.cfg = cfg
         self.store = store
         self.state_io = state_io

@@ -103,6 +103,10 @@ class StateDir:
                           ("fouling calibration", st.fouling)):
             if doc is not None:
                 log.info("state: %s of %s loaded", name, doc.get("saved_at", "?"))
+        if st.initial is None:
+            log.warning("state: no %s in %s: the fixed model is the data sheet (plant.yaml); "
+                        "commission with 'hp-edge calibrate initial'",
+                        statefiles.INITIAL_CALIBRATION, self.dir)
         return st
 
     def save_fouling(self, doc: dict) -> None:

@@ -66,7 +66,7 @@ class PlcConfig:
     device_id: int = 1
     timeout_s: float = 1.0
     reconnect_min_s: float = 1.0
-    reconnect_max_s: float = 30.0
+    reconnect_max_s: float = 2.5
 
 
 @dataclass(frozen=True)
@@ -188,7 +188,7 @@ def _plc(sec: _Section) -> PlcConfig | None:
         device_id=sec.integer("device_id", lo=0, hi=255, default=1),
         timeout_s=sec.number("timeout_s", positive=True, default=1.0),
         reconnect_min_s=sec.number("reconnect_min_s", positive=True, default=1.0),
-        reconnect_max_s=sec.number("reconnect_max_s", positive=True, default=30.0),
+        reconnect_max_s=sec.number("reconnect_max_s", positive=True, default=2.5),
     )
     if kw["reconnect_min_s"] is not None and kw["reconnect_max_s"] is not None \
             and kw["reconnect_max_s"] < kw["reconnect_min_s"]:

@@ -10,14 +10,17 @@ import sys
 from edge.config import DEFAULT_CONFIG
 
 # What each status bit means (SPEC 7.3); docs/registers.md is rendered from the YAML plus this.
-STATUS_BIT_NOTES = {
-    "data_stale": "no fresh data: read failures, stale tags, or a frozen life counter",
-    "heat_pump_off": "running flag 0 (or the heat pump is inferred to be off)",
-    "cip_detected": "cleaning-in-place in progress",
-    "calibration_failed": "the last fouling calibration failed, or none has run yet",
-    "model_infeasible": "set-point optimization / model could not solve the window",
-    "comm_fault": "Modbus communication fault on the last poll",
-    "advice_stale": "advice values are from an earlier cycle (see advice_age_s)",
+STATUS_BIT_NOTES = {   # what edge/loop.py does, word for word (the HMI map is generated from it)
+    "data_stale": "no fresh data: a tag not read good for its max_age_s, a frozen life counter, "
+                  "or the last poll failed",
+    "heat_pump_off": "running flag reads 0 (without a good running flag: W_LS + W_HS < 20 kW)",
+    "cip_detected": "CIP flag reads 1 (cleaning in place)",
+    "calibration_failed": "no fouling calibration yet, or the last one failed",
+    "model_infeasible": "the last set-point optimization found no feasible point in the window",
+    "comm_fault": "the last poll got no usable answer, or one failed since the previous successful "
+                  "advisory write (the first block after an outage carries it)",
+    "advice_stale": "values are from an earlier calibration: the last attempt failed, or they are "
+                    "older than 1.5 calibration intervals (see advice_age_s)",
 }
 
 

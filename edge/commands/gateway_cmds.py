@@ -49,18 +49,26 @@ def register(sub) -> None:
     register_run_demo(sub)
 
 
-# ------------------------------------------------------------------------------ check-config
-
-
-def cmd_check_config(args: argparse.Namespace) -> int:
+def load_config_or_report(path, load_plant: bool = True):
+    """The validated configuration, or None after printing every problem (file, tag, key) to
+    stderr; callers then exit with code 2 before touching the network."""
     from edge.config import ConfigError, load_config
 
     try:
-        cfg = load_config(args.config)
+        return load_config(path, load_plant=load_plant)
     except ConfigError as exc:
         for line in exc.problems:
             print(line, file=sys.stderr)
         print(f"{len(exc.problems)} problem(s); nothing was started.", file=sys.stderr)
+        return None
+
+
+# ------------------------------------------------------------------------------ check-config
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    cfg = load_config_or_report(args.config)
+    if cfg is None:
         return 2
     print(render_markdown(cfg) if args.markdown else render_layout(cfg), end="")
     return 0
@@ -206,13 +214,8 @@ def cmd_read(args: argparse.Namespace) -> int:
     import asyncio
     import logging
 
-    from edge.config import ConfigError, load_config
-
-    try:
-        cfg = load_config(args.config, load_plant=False)
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
+    cfg = load_config_or_report(args.config, load_plant=False)
+    if cfg is None:
         return 2
     from edge.plc import quiet_pymodbus_logging
 
@@ -342,14 +345,8 @@ def _setup_logging(level: str) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from edge.config import ConfigError, load_config
-
-    try:
-        cfg = load_config(args.config)
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
-        print(f"{len(exc.problems)} problem(s); nothing was started.", file=sys.stderr)
+    cfg = load_config_or_report(args.config)
+    if cfg is None:
         return 2
     _setup_logging(args.log_level)
     if args.time_source == "plc" and "plc_clock" not in {t.name for t in cfg.tags}:
@@ -374,13 +371,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import logging
     from pathlib import Path
 
-    from edge.config import ConfigError, load_config
-
-    try:
-        load_config(args.config)
-    except ConfigError as exc:
-        for line in exc.problems:
-            print(line, file=sys.stderr)
+    if load_config_or_report(args.config) is None:
         return 2
     if not 1.0 <= args.speed <= 3600.0 or args.refresh <= 0 or (args.minutes is not None
                                                                 and args.minutes <= 0):

@@ -177,3 +177,15 @@ def test_calibrate_and_optimize_commands(csv_file, tmp_path, capsys):
     assert main(["calibrate", "fouling", str(csv_file), "--window", "2031-01-01/2031-01-02",
                  "--state-dir", str(state)]) == 2
     assert "no rows between" in capsys.readouterr().err
+
+
+def test_history_without_required_columns_names_them(csv_file, tmp_path, capsys):
+    thin = tmp_path / "thin.csv"
+    pd.read_csv(csv_file).drop(columns=["W_HS", "p_source_out"]).to_csv(thin, index=False)
+    for argv in (["replay", str(thin), "--out", str(tmp_path / "o")],
+                 ["calibrate", "initial", str(thin), "--state-dir", str(tmp_path / "s")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(f"{thin}: missing column(s) p_source_out, W_HS "
+                            "(canonical history columns, SPEC §4)"), err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "s").exists()   # nothing written

@@ -133,6 +133,11 @@ def read_history_csv(path):
         raise CommandError(f"{path}: cannot read as CSV: {exc}") from None
     if "timestamp" not in df.columns:
         raise CommandError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
+    from model.measured import REQUIRED
+    missing = [c for c in REQUIRED if c not in df.columns]
+    if missing:   # without any of these every row would be unusable: say which, up front
+        raise CommandError(f"{path}: missing column(s) {', '.join(missing)} "
+                           "(canonical history columns, SPEC §4)")
     skipped: dict[str, int] = {}
     ts = pd.to_datetime(df["timestamp"], utc=True, errors="coerce", format="ISO8601")
     bad = ts.isna().to_numpy()

@@ -87,3 +87,10 @@ def test_point_bad_config_names_file(tmp_path, capsys):
     assert f"hp-edge: {bad}: missing key 'evaporator.U_W_per_m2K'" in lines
     assert f"hp-edge: {bad}: missing key 'source_pressure_drop.dp_clean_coef'" in lines
     assert all(line.startswith(f"hp-edge: {bad}: ") for line in lines)
+
+
+def test_point_refuses_non_finite_inputs(capsys):
+    with pytest.raises(SystemExit) as ei:
+        main(["point", "--T-source-in", "nan"])
+    assert ei.value.code == 2
+    assert "argument --T-source-in: 'nan' is not a finite number" in capsys.readouterr().err

@@ -1,23 +1,36 @@
 """Model commands: point, bench, fit-compressor. Heavy imports stay inside the functions."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
 from edge.plantfile import DEFAULT_PLANT
 
 
+def finite(text: str) -> float:
+    """argparse type: a finite number (nan/inf are refused with the flag's name)."""
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
 def register(sub) -> None:
     p = sub.add_parser("point", help="solve one operating point of the heat pump model",
                        description="Solve one quasi-steady operating point and print it.")
-    p.add_argument("--T-source-in", type=float, default=25.0, help="source inlet [degC] (25)")
-    p.add_argument("--T-source-out", type=float, default=18.0, help="source outlet [degC] (18)")
-    p.add_argument("--T-sink-in", type=float, default=40.0, help="sink inlet (return) [degC] (40)")
-    p.add_argument("--V-source", type=float, default=192.0, help="source flow [m3/h] (192)")
-    p.add_argument("--V-sink", type=float, default=62.0, help="sink flow [m3/h] (62)")
-    p.add_argument("--p-m-sp", type=float, default=16.0, help="intermediate-pressure set point [bar(g)] (16)")
-    p.add_argument("--R-th-f", type=float, default=None, help="evaporator fouling resistance [K/kW]")
-    p.add_argument("--CF-dp-f", type=float, default=None, help="fouling pressure-drop factor [-]")
+    p.add_argument("--T-source-in", type=finite, default=25.0, help="source inlet [degC] (25)")
+    p.add_argument("--T-source-out", type=finite, default=18.0, help="source outlet [degC] (18)")
+    p.add_argument("--T-sink-in", type=finite, default=40.0, help="sink inlet (return) [degC] (40)")
+    p.add_argument("--V-source", type=finite, default=192.0, help="source flow [m3/h] (192)")
+    p.add_argument("--V-sink", type=finite, default=62.0, help="sink flow [m3/h] (62)")
+    p.add_argument("--p-m-sp", type=finite, default=16.0, help="intermediate-pressure set point [bar(g)] (16)")
+    p.add_argument("--R-th-f", type=finite, default=None, help="evaporator fouling resistance [K/kW]")
+    p.add_argument("--CF-dp-f", type=finite, default=None, help="fouling pressure-drop factor [-]")
     p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
     p.add_argument("--backend", choices=("HEOS", "BICUBIC&HEOS"), default=None,
                    help="property backend (default: the plant file's)")

@@ -28,6 +28,7 @@ OUTPUT_KEYS = (
     "Q_sink_kW", "Q_source_kW", "W_LS_kW", "W_HS_kW", "W_total_kW", "COP", "T_sink_out_C",
     "eta_is_LS", "eta_is_HS", "eta_vol_LS", "eta_vol_HS", "m_LS_kg_s", "m_HS_kg_s", "subcooling_K",
     "pinch_K", "dp_source_bar", "T_dis_LS_C", "T_dis_HS_C", "energy_residual", "hs_saturated",
+    "T_source_out_C", "ls_saturated",
 )
 
 
@@ -43,16 +44,20 @@ def result_row(res: CycleResult, ambient_pressure: float) -> dict:
     d = res.to_dict(ambient_pressure, states=False)
     d["T_dis_LS_C"] = K_to_C(res.states["LS_dis"].T)
     d["T_dis_HS_C"] = K_to_C(res.states["HS_dis"].T)
+    d["T_source_out_C"] = K_to_C(res.T_source_out)
+    d["ls_saturated"] = bool(res.ls_limit)
     return {k: d[k] for k in OUTPUT_KEYS}
 
 
 def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
-                   columns: tuple[str, ...] = OUTPUT_KEYS) -> pd.DataFrame:
+                   columns: tuple[str, ...] = OUTPUT_KEYS, ls_mode: str = "flag") -> pd.DataFrame:
     """Simulate every row of ``df`` (canonical input columns) with warm starts.
 
     p_m_sp : float [bar(g)] or array, optional
         Overrides the ``p_m_sp`` column (used by the set-point optimizer).
     columns : which output keys to keep (fewer is faster to assemble).
+    ls_mode : "flag" (measured data: an LS speed out of range is a flagged row) or "float"
+        (prediction: the LS saturates and T_source,out floats; see model.cycle.solve).
     """
     missing = [c for c in INPUT_COLUMNS if c not in df.columns and not (c == "p_m_sp" and p_m_sp is not None)]
     if missing:
@@ -74,7 +79,8 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
             status[i], reason[i] = "bad_input", f"missing or non-finite: {', '.join(bad)}"
             continue
         try:
-            res = solve(inputs_from_row(vals, amb_bar), params, guess=guess, fluid=fluid)
+            res = solve(inputs_from_row(vals, amb_bar), params, guess=guess, fluid=fluid,
+                        ls_mode=ls_mode)
             status[i], reason[i] = "ok", ""
         except InfeasibleOperation as exc:
             status[i], reason[i] = exc.reason, str(exc)

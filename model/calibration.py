@@ -596,13 +596,17 @@ def _identifiability(prob: _Problem, x: np.ndarray, e: dict, spec: CalibrationSp
     corr = {n: {m: math.nan for m in names} for n in names}
     warnings: list[str] = []
     cond = math.nan
+    norms_all = np.linalg.norm(J, axis=0)
+    insensitive = [names[i] for i in range(k) if norms_all[i] == 0.0]
+    if insensitive:
+        # e.g. a DSH that condenses at the bound: no target moves with the factor. Said so here; the
+        # other parameters are analysed without it (it would make every covariance singular)
+        warnings.append(f"the targets do not depend on {', '.join(insensitive)}: not identifiable")
+        free = [i for i in free if norms_all[i] > 0.0]
     if free:
         Jf = J[:, free]
         norms = np.linalg.norm(Jf, axis=0)
-        insensitive = [names[free[j]] for j in range(len(free)) if norms[j] == 0.0]
-        if insensitive:
-            warnings.append(f"the targets do not depend on {', '.join(insensitive)}: not identifiable")
-        Jn = Jf / np.where(norms > 0, norms, 1.0)
+        Jn = Jf / norms
         sv = np.linalg.svd(Jn, compute_uv=False)
         cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
         m = J.shape[0]

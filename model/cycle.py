@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from .components import counterflow_eps, evaporator_T_e
 from .fluid import Fluid, PropertyError, SatState, get_fluid
 from .params import CycleInputs, PlantParams
 from .units import BAR, K_to_C, Pa_to_barg
@@ -77,7 +78,7 @@ class CycleResult:
     Q_DSH: float
     Q_con: float
     Q_SC: float
-    W_LS: float
+    W_LS: float             # electric power: shaft power m*(h_dis - h_suc) times the drive factor
     W_HS: float
     T_sink_out: float
     T_w_SC_out: float       # water between SC and condenser [K]
@@ -88,10 +89,13 @@ class CycleResult:
     pinch: float
     dsh_condensing: bool    # DSH outlet reached saturation (its surplus UA left unused)
     states: dict[str, State] = field(default_factory=dict)
+    T_source_out: float = math.nan   # source outlet [K]: the input, or where it floats (ls_limit)
+    ls_limit: str = ""               # "max"/"min": LS at that speed bound, T_source_out floating
     iterations: int = 0
     _slope_c: float = 0.0   # d(residual)/dT_c from the last solve (warm start)
     _slope_m: float = 0.0   # d(n_HS)/dT_m from the last solve (warm start)
     _warm: dict = field(default_factory=dict)   # (p, rho, T) of the isentropic discharge states
+    _cp_l: float = 0.0      # SC liquid secant heat capacity from the last solve (warm start)
 
     @property
     def W_total(self) -> float:
@@ -106,9 +110,15 @@ class CycleResult:
         return self.branch == "hs_max"
 
     @property
+    def W_shaft(self) -> float:
+        """Shaft power of both stages m*(h_dis - h_suc) [W] (adiabatic compressors)."""
+        return (self.m_LS * (self.states["LS_dis"].h - self.states["LS_suc"].h)
+                + self.m_HS * (self.states["HS_dis"].h - self.states["HS_suc"].h))
+
+    @property
     def energy_residual(self) -> float:
-        """(Q_source + W_total - Q_sink) / Q_sink: must be ~0 (adiabatic compressors)."""
-        return (self.Q_source + self.W_total - self.Q_sink) / self.Q_sink
+        """(Q_source + W_shaft - Q_sink) / Q_sink: must be ~0 (adiabatic compressors)."""
+        return (self.Q_source + self.W_shaft - self.Q_sink) / self.Q_sink
 
     def to_dict(self, ambient_pressure: float = 1.01325e5, states: bool = True) -> dict:
         """Canonical keys and units (bar absolute, degC, kW, rpm) as printed by `hp-edge point`."""
@@ -127,6 +137,7 @@ class CycleResult:
             "m_LS_kg_s": self.m_LS, "m_HS_kg_s": self.m_HS,
             "superheat_K": self.superheat, "subcooling_K": self.subcooling, "pinch_K": self.pinch,
             "dp_source_bar": self.dp_source / BAR, "energy_residual": self.energy_residual,
+            "T_source_out_C": K_to_C(self.T_source_out), "ls_limit": self.ls_limit,
         }
         if states:
             d["states"] = {k: {"T_C": K_to_C(s.T), "p_bar": s.p / BAR, "h_J_kg": s.h}
@@ -138,33 +149,14 @@ class CycleResult:
 # components
 # --------------------------------------------------------------------------------------------------
 def evaporator(inp: CycleInputs, params: PlantParams) -> tuple[float, float]:
-    """(Q_source [W], T_e [K]) of the flooded evaporator.
-
-    Refrigerant at T_e along the whole surface, water cooled from T_source,in to T_source,out:
-    UA*LMTD = Q_source with 1/UA = 1/(CF_eva*U*A) + R_th,f gives T_e in closed form:
-    T_e = (T_out*e^NTU - T_in) / (e^NTU - 1), NTU = UA / C_source.
-    """
+    """(Q_source [W], T_e [K]) of the flooded evaporator (closed form: model.components)."""
     C = params.cp_w * params.rho_w * inp.V_source
     dT = inp.T_source_in - inp.T_source_out
     if not (C > 0.0 and dT > 0.0):
         raise InfeasibleOperation(
             f"source must be cooled with positive flow (V_source={inp.V_source:.4g} m3/s, "
             f"T_in-T_out={dT:.4g} K)", reason="bad_source")
-    NTU = params.UA_eva / C
-    e = math.exp(NTU)
-    T_e = (inp.T_source_out * e - inp.T_source_in) / (e - 1.0)
-    return C * dT, T_e
-
-
-def counterflow_eps(C_a: float, C_b: float, UA: float) -> tuple[float, float]:
-    """(effectiveness, C_min) of a counterflow exchanger between capacity rates C_a, C_b [W/K]."""
-    C_min, C_max = (C_a, C_b) if C_a < C_b else (C_b, C_a)
-    NTU = UA / C_min
-    Cr = C_min / C_max
-    if abs(1.0 - Cr) < 1e-9:
-        return NTU / (1.0 + NTU), C_min
-    x = math.exp(-NTU * (1.0 - Cr))
-    return (1.0 - x) / (1.0 - Cr * x), C_min
+    return C * dT, evaporator_T_e(inp.T_source_in, inp.T_source_out, params.UA_eva, C)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -195,6 +187,7 @@ class _Point:
         self.n_LS = guess.N_LS / params.comp_LS.N_nom if guess else 1.0
         self.n_HS = guess.N_HS / params.comp_HS.N_nom if guess else 1.0
         self.m_HS = guess.m_HS if guess else None
+        self.cp_l = guess._cp_l if guess else None
         if guess:
             for stage, g in guess._warm.items():
                 setattr(self, "_g_" + stage, g)
@@ -246,6 +239,24 @@ class _Point:
         self._memo = (T_m, T_c, d)
         return d if full else (d["r"], d["n_HS"])
 
+    def _hs_flow(self, m: float, num: float, dh: float, cp_l: float, dT_SC: float) -> float:
+        """m_HS from the intercooler balance m = num / (dh + Q_SC(m)/m) for a fixed liquid heat
+        capacity: a secant on the fixed-point residual (the plain iteration contracts slowly)."""
+        def G(x: float) -> float:
+            eps, C_min = counterflow_eps(x * cp_l, self.C_w, self.UA_SC)
+            return num / (dh + eps * C_min * dT_SC / x)
+        x0, r0 = m, G(m) - m
+        if abs(r0) <= 1e-14 * m:
+            return m + r0
+        x1 = x0 + r0
+        for _ in range(MAX_ITER):
+            r1 = G(x1) - x1
+            if abs(r1) <= 1e-14 * x1 or r1 == r0:
+                return x1 + r1
+            x0, r0, x1 = x1, r1, x1 - r1 * (x1 - x0) / (r1 - r0)
+        raise ConvergenceError("HS mass flow: intercooler balance did not converge",
+                               reason="no_convergence")
+
     def _evaluate(self, T_m: float, T_c: float) -> dict:
         self.evals += 1
         par, fl, inp = self.par, self.fl, self.inp
@@ -255,28 +266,37 @@ class _Point:
         sat_m = fl.sat_T(T_m)
         sat_c = fl.sat_T(T_c)
         m_LS, n_LS, ev_LS, eta_LS, h2s, T2s, rho2s, h2 = self.ls_side(sat_m)
-        # subcooler: liquid capacity from the saturated-liquid secant over 5 K
-        cp_l = (sat_c.h_f - fl.h_liq_sat(T_c - 5.0)) / 5.0
         dT_SC = T_c - inp.T_sink_in
         if dT_SC <= 0.0:
             raise ConvergenceError("condensing temperature below sink inlet", reason="no_convergence")
-        # HS mass flow: intercooler balance m_HS*(h_g,m - h_SC,out) = m_LS*(h2 - h_f,m), where the SC
-        # outlet depends weakly on m_HS -> fixed point (contraction factor << 1)
+        # HS mass flow: intercooler balance m_HS*(h_g,m - h_SC,out) = m_LS*(h2 - h_f,m). The SC outlet
+        # depends on m_HS and on the liquid's capacity rate, taken as the secant heat capacity over the
+        # SC's actual range, (h_f(T_c) - h(p_c, T_SC,out)) / (T_c - T_SC,out), with the outlet enthalpy
+        # from the equation of state: a fixed point in (m_HS, cp_l) that contracts fast (cp_l of liquid
+        # ammonia varies a few % over 20 K). At convergence the SC outlet state is exact and its duty
+        # m*(h_f - h_SC) equals the eps-NTU duty.
         num = m_LS * (h2 - sat_m.h_f)
         m = self.m_HS if self.m_HS else num / (sat_m.h_g - sat_c.h_f)
-        for _ in range(60):
+        cp_l = self.cp_l if self.cp_l else (sat_c.h_f - fl.h_liq_sat(T_c - 5.0)) / 5.0
+        for _ in range(MAX_ITER):
+            # inner: m_HS for the present cp_l (no property call); outer: cp_l from the EOS outlet
+            m = self._hs_flow(m, num, sat_m.h_g - sat_c.h_f, cp_l, dT_SC)
             eps, C_min = counterflow_eps(m * cp_l, self.C_w, self.UA_SC)
-            Q_SC = eps * C_min * dT_SC
-            h_SC = sat_c.h_f - Q_SC / m
-            m_new = num / (sat_m.h_g - h_SC)
-            if abs(m_new - m) <= 1e-14 * m:
-                m = m_new
+            T_SC = T_c - eps * C_min * dT_SC / (m * cp_l)
+            if T_c - T_SC <= 1e-6:
+                h_SC = sat_c.h_f - cp_l * (T_c - T_SC)
                 break
-            m = m_new
-        eps, C_min = counterflow_eps(m * cp_l, self.C_w, self.UA_SC)
-        Q_SC = eps * C_min * dT_SC
-        h_SC = sat_c.h_f - Q_SC / m
-        self.m_HS = m
+            h_SC = fl.liquid_pT(sat_c.p, T_SC)
+            cp_new = (sat_c.h_f - h_SC) / (T_c - T_SC)
+            done = abs(cp_new - cp_l) <= 1e-10 * cp_l
+            cp_l = cp_new
+            if done:
+                m = num / (sat_m.h_g - h_SC)
+                break
+        else:
+            raise ConvergenceError("subcooler outlet state: no convergence", reason="no_convergence")
+        Q_SC = m * (sat_c.h_f - h_SC)
+        self.m_HS, self.cp_l = m, cp_l
         # HS compressor
         pi_HS = sat_c.p / sat_m.p
         n_HS, ev_HS = par.comp_HS.speed_for_flow(m, sat_m.rho_g, pi_HS, self.n_HS)
@@ -288,10 +308,9 @@ class _Point:
         h4s, T4s, rho4s = fl.isentropic(sat_c.p, sat_m.s_g, self._rhoT_guess("HS", sat_c.p))
         self._remember("HS", sat_c.p, rho4s, T4s)
         h4 = sat_m.h_g + (h4s - sat_m.h_g) / eta_HS
-        # actual discharge temperature: the isentropic one plus the extra enthalpy over a vapour cp
-        # estimated on the isentropic line (exact T is taken from a flash for the final state only)
-        cp_v4 = (h4s - sat_c.h_g) / (T4s - T_c) if T4s > T_c + 1e-6 else 3000.0
-        T4 = T4s + (h4 - h4s) / cp_v4
+        # actual discharge temperature from the equation of state (Newton warm-started at the
+        # isentropic state); the DSH's vapour capacity rate is the secant over its whole range
+        T4, rho4 = fl.vapour_ph(sat_c.p, h4, (rho4s, T4s))
         # condenser unit, water SC -> condenser -> DSH
         T_w1 = inp.T_sink_in + Q_SC / self.C_w
         Q_con = self.eps_con * self.C_w * (T_c - T_w1)
@@ -307,7 +326,8 @@ class _Point:
         r = (Q_con - m * (h_DSH - sat_c.h_f)) / self.Q_source
         return dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
                     h2s=h2s, T2s=T2s, rho2s=rho2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
-                    h4s=h4s, T4s=T4s, rho4s=rho4s, h4=h4, T4=T4, cp_l=cp_l, cp_v=cp_v, Q_SC=Q_SC, h_SC=h_SC,
+                    h4s=h4s, T4s=T4s, rho4s=rho4s, h4=h4, T4=T4, rho4=rho4, cp_l=cp_l, cp_v=cp_v,
+                    Q_SC=Q_SC, h_SC=h_SC, T_SC=T_SC,
                     Q_con=Q_con, Q_DSH=Q_DSH, h_DSH=h_DSH, T_w1=T_w1, T_w2=T_w2,
                     dsh_condensing=dsh_condensing, r=r)
 
@@ -364,8 +384,12 @@ def _secant(f, x0: float, slope: float, tol: float, lo: float, hi: float, what: 
 # --------------------------------------------------------------------------------------------------
 # solve one point
 # --------------------------------------------------------------------------------------------------
+LS_MODES = ("flag", "float")
+LS_SPEED_TOL = 1e-7       # LS speed-bound residual when T_source,out floats, relative to nominal speed
+
+
 def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = None,
-          fluid: Fluid | None = None) -> CycleResult:
+          fluid: Fluid | None = None, ls_mode: str = "flag") -> CycleResult:
     """Solve one operating point.
 
     Parameters
@@ -375,24 +399,121 @@ def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = Non
     params : PlantParams
     guess : CycleResult, optional
         A nearby solution (the previous minute) for a warm start.
+    ls_mode : "flag" or "float"
+        What an LS speed outside 700-1800 rpm means. "flag" (measured data; the default): T_source,out
+        is what the plant achieved, so such a point says the model is off; it raises
+        InfeasibleOperation (``ls_speed_high``/``ls_speed_low``) with the solved state attached.
+        "float" (prediction; the optimizer): the LS speed controller saturates as the plant's does:
+        at N_max the compressor cannot carry the duty and T_source,out floats above the input (less
+        heat from the source), at N_min it floats below. The result's ``T_source_out`` and
+        ``ls_limit`` ("max"/"min") say so; Q_source is the floating point's.
 
     Raises
     ------
     InfeasibleOperation
-        Solved, but the LS compressor would run outside its speed range (``result`` attached),
-        or the inputs cannot be operated (source not cooled, set point below p_e, ...).
+        Solved, but outside an operating limit (``result`` attached), or the inputs cannot be
+        operated (source not cooled, set point below p_e, ...).
     ConvergenceError
         No solution found; the message says why.
     """
+    if ls_mode not in LS_MODES:
+        raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
     fluid = fluid or get_fluid(params.fluid, params.backend)
     try:
-        return _solve(inp, params, guess, fluid)
+        if ls_mode == "float":
+            res = _solve_ls_float(inp, params, guess, fluid)
+        else:
+            res = _solve(inp, params, guess, fluid)
+        _check_limits(res, params)
+        return res
     except PropertyError as exc:
         raise ConvergenceError(f"property evaluation failed: {exc}", reason="property_error") from exc
     except ValueError as exc:   # compressor curve outside its valid shape
         raise ConvergenceError(str(exc), reason="compressor_curve") from exc
     except ZeroDivisionError as exc:
         raise ConvergenceError(f"degenerate state: {exc}", reason="no_convergence") from exc
+
+
+OVERLOAD = ("eta_out_of_range", "hs_speed_high", "p_c_high")   # failures at too much LS duty
+
+
+def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | None,
+                    fluid: Fluid) -> CycleResult:
+    """The LS speed controller with its saturation: T_source,out at the input when the LS speed that
+    carries that duty is within its range, else floating where N_LS sits at the violated bound.
+
+    N_LS falls monotonically as T_source,out rises (less duty, and a warmer evaporator): a secant on
+    T_source,out seeded with "speed proportional to duty", safeguarded by bisection. At the input's
+    T_source,out the duty may be so far beyond the LS stage that the flowsheet cannot be solved at all
+    (the HS stage overloaded, the condenser beyond its design pressure): that counts as "speed above
+    the maximum" too, and a trial point that cannot be solved counts as being on the input's side."""
+    ls = params.comp_LS
+    T_sp, T_in = inp.T_source_out, inp.T_source_in
+    try:
+        res: CycleResult | None = _solve(inp, params, guess, fluid)
+        err = None
+    except InfeasibleOperation as exc:
+        if exc.reason not in OVERLOAD:
+            raise
+        res, err = None, exc
+    if res is not None and ls.N_min <= res.N_LS <= ls.N_max:
+        return res
+    limit = "max" if res is None or res.N_LS > ls.N_max else "min"
+    N_b = ls.N_max if limit == "max" else ls.N_min
+    lo, hi = (T_sp, T_in - 0.05) if limit == "max" else (max(T_sp - 15.0, fluid.T_triple + 5.0), T_sp)
+    far = hi if limit == "max" else lo          # the end where the bound is surely met
+    last = {"res": res if res is not None else guess}
+
+    def g(T_out: float) -> float | None:
+        """(N_LS - N_b)/N_nom at T_out, None when the point cannot be solved."""
+        try:
+            r = _solve(inp.replace(T_source_out=T_out), params, last["res"], fluid)
+        except ModelError:
+            return None
+        last["res"] = r
+        return (r.N_LS - N_b) / ls.N_nom
+
+    sgn0 = 1.0 if limit == "max" else -1.0      # sign of g on the input's side
+    near, f_near = T_sp, (None if res is None else (res.N_LS - N_b) / ls.N_nom)
+    beyond = f_beyond = None                    # a point where the bound is met (sign change)
+    if res is not None:
+        x = T_in - (T_in - T_sp) * N_b / res.N_LS          # duty proportional to speed
+    else:
+        x = T_sp + 0.5 * (far - T_sp)
+    if guess is not None and guess.ls_limit == limit and min(lo, hi) < guess.T_source_out < max(lo, hi):
+        x = guess.T_source_out                              # where it floated a minute ago
+    x = min(max(x, lo), hi)
+    for _ in range(2 * MAX_ITER):
+        fx = g(x)
+        if fx is not None and abs(fx) < LS_SPEED_TOL:
+            out = last["res"]
+            out.ls_limit = limit
+            return out
+        if fx is None or fx * sgn0 > 0:
+            prev = (near, f_near)
+            near, f_near = x, fx
+        else:
+            prev = (beyond, f_beyond)
+            beyond, f_beyond = x, fx
+        # next trial: secant through the two newest finite points, kept inside the bracket
+        xn = None
+        p_x, p_f = prev
+        if fx is not None and p_f is not None and p_f != fx and p_x is not None:
+            xn = x - fx * (x - p_x) / (fx - p_f)
+        elif fx is not None and f_near is not None and beyond is not None and f_beyond != f_near:
+            xn = near - f_near * (near - beyond) / (f_near - f_beyond)
+        a, b = near, (beyond if beyond is not None else far)
+        if beyond is None and x == far:
+            break                                             # even at the far end: not met
+        if xn is None or not min(a, b) < xn < max(a, b):
+            xn = 0.5 * (a + b)
+        x = xn
+    if err is not None:
+        raise err
+    raise InfeasibleOperation(
+        f"LS compressor at {N_b:.0f} rpm: no source outlet temperature in "
+        f"{K_to_C(lo):.2f}..{K_to_C(hi):.2f} degC carries its flow",
+        reason=f"ls_speed_{'high' if limit == 'max' else 'low'}", result=res)
 
 
 def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, fluid: Fluid) -> CycleResult:
@@ -471,9 +592,7 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
 
     T_c = solve_Tc(T_m)
     s = pt.evaluate(T_m, T_c, full=True)
-    res = _assemble(pt, s, branch, T_m, T_c, slope_c, slope_m)
-    _check_limits(res, params)
-    return res
+    return _assemble(pt, s, branch, T_m, T_c, slope_c, slope_m)
 
 
 def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c: float,
@@ -481,16 +600,16 @@ def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c:
     inp, par, fl = pt.inp, pt.par, pt.fl
     sat_m, sat_c, sat_e = s["sat_m"], s["sat_c"], pt.sat_e
     m_LS, m_HS = s["m_LS"], s["m_HS"]
-    W_LS = m_LS * (s["h2"] - pt.h1)
-    W_HS = m_HS * (s["h4"] - sat_m.h_g)
+    W_LS = m_LS * (s["h2"] - pt.h1) * par.comp_LS.drive_factor
+    W_HS = m_HS * (s["h4"] - sat_m.h_g) * par.comp_HS.drive_factor
     Q_sink = s["Q_SC"] + s["Q_con"] + s["Q_DSH"]
     T_sink_out = s["T_w2"] + s["Q_DSH"] / pt.C_w
-    T_SC_out = T_c - s["Q_SC"] / (m_HS * s["cp_l"])
+    T_SC_out = s["T_SC"]
     T_DSH_out = s["T4"] - s["Q_DSH"] / (m_HS * s["cp_v"])
     pinch = min(T_SC_out - inp.T_sink_in, T_c - s["T_w1"], T_c - s["T_w2"],
                 T_DSH_out - s["T_w2"], s["T4"] - T_sink_out)
     p_e, p_m, p_c = sat_e.p, sat_m.p, sat_c.p
-    T4, rho4 = fl.vapour_ph(p_c, s["h4"], (s["rho4s"], s["T4s"]))
+    T4, rho4 = s["T4"], s["rho4"]
     states = {
         "eva_out": State(pt.T_e, p_e, sat_e.h_g),
         "LS_suc": State(pt.T1, p_e, pt.h1),
@@ -516,16 +635,18 @@ def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c:
         T_w_SC_out=s["T_w1"], T_w_con_out=s["T_w2"],
         dp_source=par.CF_dp_f * par.dp_clean(inp.V_source), superheat=par.superheat,
         subcooling=T_c - T_SC_out, pinch=pinch, dsh_condensing=s["dsh_condensing"], states=states,
-        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m,
+        T_source_out=inp.T_source_out,
+        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m, _cp_l=s["cp_l"],
         _warm={k: getattr(pt, "_g_" + k) for k in ("LS", "HS") if getattr(pt, "_g_" + k, None)})
 
 
 def _check_limits(res: CycleResult, params: PlantParams) -> None:
     ls = params.comp_LS
-    if res.N_LS > ls.N_max:
+    tol = 10 * LS_SPEED_TOL * ls.N_nom     # a floating LS sits on its bound to within this
+    if res.N_LS > ls.N_max + tol:
         raise InfeasibleOperation(f"LS compressor speed {res.N_LS:.0f} rpm above its maximum "
                                   f"{ls.N_max:.0f} rpm", reason="ls_speed_high", result=res)
-    if res.N_LS < ls.N_min:
+    if res.N_LS < ls.N_min - tol:
         raise InfeasibleOperation(f"LS compressor speed {res.N_LS:.0f} rpm below its minimum "
                                   f"{ls.N_min:.0f} rpm", reason="ls_speed_low", result=res)
     if res.pinch < 0.0:

@@ -48,6 +48,8 @@ class Fluid:
         self._heos = AbstractState("HEOS", name)
         self._gas = AbstractState("HEOS", name)
         self._gas.specify_phase(CP.iphase_gas)
+        self._liq = AbstractState("HEOS", name)
+        self._liq.specify_phase(CP.iphase_liquid)
         self._tab = None if backend == "HEOS" else AbstractState(backend, name)
         self.T_crit = self._heos.T_critical()
         self.p_crit = self._heos.p_critical()
@@ -94,6 +96,15 @@ class Fluid:
     def h_liq_sat(self, T: float) -> float:
         """Saturated-liquid enthalpy at T [K] (subcooled liquid enthalpy to < 0.1 % here)."""
         return self.sat_T(T).h_f
+
+    def liquid_pT(self, p: float, T: float) -> float:
+        """Enthalpy [J/kg] of (subcooled) liquid at pressure p [Pa] and temperature T [K], from the
+        equation of state with the liquid phase imposed (exact next to saturation, ~9 us)."""
+        try:
+            self._liq.update(CP.PT_INPUTS, p, T)
+            return self._liq.hmass()
+        except ValueError as exc:
+            raise PropertyError(f"{self.name} liquid at p={p:.6g} Pa, T={T:.4f} K: {exc}") from exc
 
     # ---- superheated vapour -----------------------------------------------------------------
     def vapour_pT(self, p: float, T: float) -> tuple[float, float, float]:

@@ -30,6 +30,8 @@ class Compressor:
     swept_volume : swept volume flow at the nominal speed [m^3/s]
     N_nom, N_min, N_max : nominal, lowest and highest speed [rpm]
     eta_is, eta_vol : 6 coefficients each on POLY_BASIS (pressure ratio pi, n = N/N_nom) [-]
+    drive_factor : electric power / shaft power m*(h_dis - h_suc) [-]: motor, drive and heat losses
+        (1 for the model's adiabatic compressor on its shaft; learned from data, SPEC §9)
     """
     swept_volume: float
     N_nom: float
@@ -37,6 +39,7 @@ class Compressor:
     N_max: float
     eta_is: tuple[float, ...]
     eta_vol: tuple[float, ...]
+    drive_factor: float = 1.0
 
     def eta_is_at(self, pi: float, n: float) -> float:
         c = self.eta_is

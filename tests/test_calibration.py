@@ -91,7 +91,7 @@ def test_initial_calibration_recovers_CF_eva_and_warns_about_condenser(initial, 
     assert res.model_evaluations > res.iterations > 0 and res.run_time_s > 0
 
 
-@pytest.mark.parametrize("seed", [21, 30])
+@pytest.mark.parametrize("seed", [2, 21])
 def test_condenser_warning_does_not_hinge_on_one_correlation(plant, seed):
     """On these seeds no pair of condenser factors passes |r| = 0.95 (r ~ 0.945-0.949), yet the
     targets leave DSH and SC factors undetermined: the warning must still name them."""
@@ -101,7 +101,8 @@ def test_condenser_warning_does_not_hinge_on_one_correlation(plant, seed):
     mask[np.flatnonzero(processed["usable"].to_numpy())[:90]] = True
     res = calibrate(calibration_frame(sh.history, processed, mask), plant, DEFAULT_SPECS["initial"])
     pairs = [abs(res.correlation[a][b]) for a, b in (("CF_DSH", "CF_con"), ("CF_DSH", "CF_SC"), ("CF_con", "CF_SC"))]
-    assert max(pairs) < res_limit(), "seed no longer exercises the case"
+    # a pair with a factor the targets do not depend on at all has no correlation (NaN)
+    assert max(p for p in pairs if math.isfinite(p)) < res_limit(), "seed no longer exercises the case"
     text = " ".join(res.warnings)
     assert "CF_DSH" in text and "CF_SC" in text and "CF_eva" not in text
     assert abs(res.params["CF_eva"] / sh.params.CF_eva - 1.0) <= CF_EVA_REL_TOL

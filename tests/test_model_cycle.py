@@ -246,3 +246,87 @@ def test_energy_balance_property(plant, T_in, drop, T_sink, fs, fk, psp, R):
         r = exc.result
     assert abs(r.energy_residual) <= ENERGY_TOL
     intercooler_checks(r)
+
+
+EOS_TOL = 1e-6             # issue #8 item 3: every reported state agrees with the EOS, relative
+
+
+@pytest.mark.parametrize("kw", [{}, {"p_m_sp": 10.0}, {"V_sink": 50.0, "T_sink_in": 44.0},
+                                {"V_source": 170.0, "T_source_in": 23.0, "p_m_sp": 20.0}])
+def test_every_reported_state_agrees_with_the_equation_of_state(plant, nominal_row, kw):
+    """Single-phase states: h(p, T) from CoolProp equals the reported h; saturated and two-phase
+    states sit at the saturation temperature of their pressure. The subcooler outlet in particular:
+    its liquid heat capacity is the secant over the SC's actual range, not a 5-K secant at
+    saturation (which put it 0.3 K and 2.9 kJ/kg off the EOS at the nominal point)."""
+    r = solve(nominal(plant, nominal_row, **kw), plant)
+    single = ("LS_suc", "LS_dis_is", "LS_dis", "HS_dis_is", "HS_dis", "SC_out")
+    if not r.dsh_condensing:
+        single += ("DSH_out",)
+    for name in single:
+        st = r.states[name]
+        h_ref = CP.PropsSI("H", "P", st.p, "T", st.T, "Ammonia")
+        assert abs(st.h - h_ref) <= EOS_TOL * abs(h_ref), (name, st, h_ref)
+    for name in ("eva_out", "HS_suc", "con_out", "IC_liq", "HS_valve_out", "LS_valve_out"):
+        st = r.states[name]
+        assert st.T == pytest.approx(CP.PropsSI("T", "P", st.p, "Q", 0, "Ammonia"), rel=EOS_TOL)
+    sc = r.states["SC_out"]
+    assert sc.T < r.T_c - 1.0                                    # really subcooled
+    assert r.subcooling == pytest.approx(r.T_c - sc.T, abs=1e-12)
+    # the SC's duty three ways: refrigerant enthalpies, the water side, and eps-NTU with the secant
+    Q_ref = r.m_HS * (r.states["con_out"].h - sc.h)
+    C_w = plant.cp_w * plant.rho_w * m3(kw.get("V_sink", nominal_row["V_sink"]))
+    assert r.Q_SC == pytest.approx(Q_ref, rel=1e-9)
+    assert C_w * (r.T_w_SC_out - C_to_K(kw.get("T_sink_in", nominal_row["T_sink_in"]))) == \
+        pytest.approx(r.Q_SC, rel=1e-9)
+    cp_sec = (r.states["con_out"].h - sc.h) / (r.T_c - sc.T)
+    eps, C_min = counterflow_eps(r.m_HS * cp_sec, C_w, plant.CF_SC * plant.U_SC * plant.A_SC)
+    assert eps * C_min * (r.T_c - C_to_K(kw.get("T_sink_in", nominal_row["T_sink_in"]))) == \
+        pytest.approx(r.Q_SC, rel=1e-8)
+
+
+def m3(v_m3h):
+    return v_m3h / 3600.0
+
+
+def test_ls_speed_limit_as_a_branch_floats_the_source_outlet(plant, nominal_row):
+    """ls_mode='float' (prediction): at more source duty than the LS can carry at 1800 rpm, the LS
+    sits at 1800 rpm and T_source,out floats above its set point; flag mode still raises."""
+    inp = nominal(plant, nominal_row, V_source=230.0)
+    with pytest.raises(InfeasibleOperation) as ei:
+        solve(inp, plant)
+    assert ei.value.reason == "ls_speed_high"
+    r = solve(inp, plant, ls_mode="float")
+    assert r.ls_limit == "max"
+    assert abs(r.N_LS - plant.comp_LS.N_max) <= 1e-3
+    assert r.T_source_out > inp.T_source_out + 0.1
+    C_s = plant.cp_w * plant.rho_w * inp.V_source
+    assert r.Q_source == pytest.approx(C_s * (inp.T_source_in - r.T_source_out), rel=1e-12)
+    assert abs(r.energy_residual) <= ENERGY_TOL
+    intercooler_checks(r)
+    # within the speed range the two modes are the same point
+    r0 = solve(nominal(plant, nominal_row), plant)
+    r1 = solve(nominal(plant, nominal_row), plant, ls_mode="float")
+    assert r1.ls_limit == "" and r1.COP == pytest.approx(r0.COP, rel=1e-12)
+    # a higher p_m costs LS capacity once the LS is at its limit: less heat from the source
+    q = [solve(nominal(plant, nominal_row, V_source=230.0, p_m_sp=sp), plant, ls_mode="float").Q_sink
+         for sp in (14.0, 17.0, 20.0)]
+    assert q[0] > q[1] > q[2]
+    with pytest.raises(ValueError, match="ls_mode must be one of flag, float"):
+        solve(inp, plant, ls_mode="clamp")
+
+
+def test_ls_branch_is_continuous_across_saturation(plant, nominal_row):
+    """Q_source follows the duty up to where the LS saturates and stays (almost) flat beyond:
+    no jump where the branch switches."""
+    flows = np.linspace(196.0, 232.0, 19)
+    q, lim = [], []
+    g = None
+    for V in flows:
+        g = solve(nominal(plant, nominal_row, V_source=float(V)), plant, guess=g, ls_mode="float")
+        q.append(g.Q_source)
+        lim.append(g.ls_limit)
+    assert lim[0] == "" and lim[-1] == "max"
+    steps = np.diff(q)
+    assert np.all(steps > -1e3)                       # never drops by more than 1 kW per step
+    i = lim.index("max")
+    assert abs(steps[i - 1]) < 2.0 * np.max(np.abs(steps[: i - 1]))   # no jump at the switch

@@ -43,7 +43,7 @@ def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dic
     from .dpfit import fit_dp_clean
     from .measured import process
     from .optimize import optimize_setpoint
-    from .replay import replay
+    from .analysis.replay import replay
     from .surrogate import Surrogate
     from .synthetic import Noise, Operation, Truth, generate
 

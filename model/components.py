@@ -51,3 +51,58 @@ def counterflow_eps(C_a: float, C_b: float, UA: float) -> tuple[float, float]:
         return NTU / (1.0 + NTU), C_min
     x = math.exp(-NTU * (1.0 - Cr))
     return (1.0 - x) / (1.0 - Cr * x), C_min
+
+
+def subcooler(num: float, dh: float, h_f: float, T_c: float, T_w_in: float, C_w: float,
+              UA: float, cp: float, m0: float | None = None, h_liq=None, tol: float = 1e-10,
+              max_iter: int = 40):
+    """The subcooler coupled with the open intercooler: HS mass flow, SC outlet and duty.
+
+    The HS flow m satisfies the intercooler balance m*(h_g,m - h_SC) = num (num = m_LS*(h_dis,LS -
+    h_f,m), dh = h_g,m - h_f,c); the SC (counterflow eps-NTU against sink water C_w entering at T_w_in)
+    cools saturated liquid (h_f at T_c) to h_SC, with the liquid's capacity rate m*cp. For a given cp
+    the balance is solved by a secant on the fixed-point residual (no property call), and
+    h_SC = h_f - cp*(T_c - T_SC).
+
+    With ``h_liq`` (the EOS liquid enthalpy h(p_c, T)) cp is iterated to the secant over the SC's
+    actual range, (h_f - h_liq(T_SC)) / (T_c - T_SC), until it changes by less than ``tol``
+    relative: the outlet is then on the EOS and the eps-NTU duty equals m*(h_f - h_SC).
+
+    Returns (m, h_SC, T_SC, cp). Raises ArithmeticError when it does not converge.
+    """
+    dT = T_c - T_w_in
+    m = m0 if m0 else num / dh
+    if dT <= 0.0:
+        return num / dh, h_f, T_c, cp
+
+    def G(x: float) -> float:
+        eps, C_min = counterflow_eps(x * cp, C_w, UA)
+        return num / (dh + eps * C_min * dT / x)
+
+    for _ in range(max_iter):
+        x0, r0 = m, G(m) - m
+        x1 = x0 + r0
+        for _ in range(max_iter):
+            if abs(r0) <= 1e-14 * x0:
+                x1 = x0 + r0
+                break
+            r1 = G(x1) - x1
+            if abs(r1) <= 1e-14 * x1 or r1 == r0:
+                x1 = x1 + r1
+                break
+            x0, r0, x1 = x1, r1, x1 - r1 * (x1 - x0) / (r1 - r0)
+        else:
+            raise ArithmeticError("subcooler: HS mass flow did not converge")
+        m = x1
+        eps, C_min = counterflow_eps(m * cp, C_w, UA)
+        T_SC = T_c - eps * C_min * dT / (m * cp)
+        h = h_f - cp * (T_c - T_SC)
+        if h_liq is None or T_c - T_SC <= 1e-6:
+            return num / (dh + h_f - h), h, T_SC, cp
+        h = h_liq(T_SC)
+        cp_new = (h_f - h) / (T_c - T_SC)
+        done = abs(cp_new - cp) <= tol * cp
+        cp = cp_new
+        if done:
+            return num / (dh + h_f - h), h, T_SC, cp
+    raise ArithmeticError("subcooler: outlet state did not converge")

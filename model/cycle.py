@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from .components import counterflow_eps, evaporator_T_e
+from .components import counterflow_eps, evaporator_T_e, subcooler
 from .fluid import Fluid, PropertyError, SatState, get_fluid
 from .params import CycleInputs, PlantParams
 from .units import BAR, K_to_C, Pa_to_barg
@@ -26,6 +26,7 @@ from .units import BAR, K_to_C, Pa_to_barg
 ENERGY_TOL = 1e-10        # condenser-zone residual, relative to Q_source
 SPEED_TOL = 1e-9          # HS speed-bound residual, relative to nominal speed
 MAX_ITER = 40
+SC_TOL = 1e-10            # SC liquid secant heat capacity vs the EOS, relative
 
 
 class ModelError(Exception):
@@ -187,7 +188,7 @@ class _Point:
         self.n_LS = guess.N_LS / params.comp_LS.N_nom if guess else 1.0
         self.n_HS = guess.N_HS / params.comp_HS.N_nom if guess else 1.0
         self.m_HS = guess.m_HS if guess else None
-        self.cp_l = guess._cp_l if guess else None
+        self.cp_l = guess._cp_l if guess else None     # SC liquid secant heat capacity (warm start)
         if guess:
             for stage, g in guess._warm.items():
                 setattr(self, "_g_" + stage, g)
@@ -239,24 +240,6 @@ class _Point:
         self._memo = (T_m, T_c, d)
         return d if full else (d["r"], d["n_HS"])
 
-    def _hs_flow(self, m: float, num: float, dh: float, cp_l: float, dT_SC: float) -> float:
-        """m_HS from the intercooler balance m = num / (dh + Q_SC(m)/m) for a fixed liquid heat
-        capacity: a secant on the fixed-point residual (the plain iteration contracts slowly)."""
-        def G(x: float) -> float:
-            eps, C_min = counterflow_eps(x * cp_l, self.C_w, self.UA_SC)
-            return num / (dh + eps * C_min * dT_SC / x)
-        x0, r0 = m, G(m) - m
-        if abs(r0) <= 1e-14 * m:
-            return m + r0
-        x1 = x0 + r0
-        for _ in range(MAX_ITER):
-            r1 = G(x1) - x1
-            if abs(r1) <= 1e-14 * x1 or r1 == r0:
-                return x1 + r1
-            x0, r0, x1 = x1, r1, x1 - r1 * (x1 - x0) / (r1 - r0)
-        raise ConvergenceError("HS mass flow: intercooler balance did not converge",
-                               reason="no_convergence")
-
     def _evaluate(self, T_m: float, T_c: float) -> dict:
         self.evals += 1
         par, fl, inp = self.par, self.fl, self.inp
@@ -276,27 +259,15 @@ class _Point:
         # ammonia varies a few % over 20 K). At convergence the SC outlet state is exact and its duty
         # m*(h_f - h_SC) equals the eps-NTU duty.
         num = m_LS * (h2 - sat_m.h_f)
-        m = self.m_HS if self.m_HS else num / (sat_m.h_g - sat_c.h_f)
         cp_l = self.cp_l if self.cp_l else (sat_c.h_f - fl.h_liq_sat(T_c - 5.0)) / 5.0
-        for _ in range(MAX_ITER):
-            # inner: m_HS for the present cp_l (no property call); outer: cp_l from the EOS outlet
-            m = self._hs_flow(m, num, sat_m.h_g - sat_c.h_f, cp_l, dT_SC)
-            eps, C_min = counterflow_eps(m * cp_l, self.C_w, self.UA_SC)
-            T_SC = T_c - eps * C_min * dT_SC / (m * cp_l)
-            if T_c - T_SC <= 1e-6:
-                h_SC = sat_c.h_f - cp_l * (T_c - T_SC)
-                break
-            h_SC = fl.liquid_pT(sat_c.p, T_SC)
-            cp_new = (sat_c.h_f - h_SC) / (T_c - T_SC)
-            done = abs(cp_new - cp_l) <= 1e-10 * cp_l
-            cp_l = cp_new
-            if done:
-                m = num / (sat_m.h_g - h_SC)
-                break
-        else:
-            raise ConvergenceError("subcooler outlet state: no convergence", reason="no_convergence")
-        Q_SC = m * (sat_c.h_f - h_SC)
+        try:
+            m, h_SC, T_SC, cp_l = subcooler(num, sat_m.h_g - sat_c.h_f, sat_c.h_f, T_c, inp.T_sink_in,
+                                            self.C_w, self.UA_SC, cp_l, self.m_HS,
+                                            lambda T: fl.liquid_pT(sat_c.p, T), tol=SC_TOL)
+        except ArithmeticError as exc:
+            raise ConvergenceError(str(exc), reason="no_convergence") from None
         self.m_HS, self.cp_l = m, cp_l
+        Q_SC = m * (sat_c.h_f - h_SC)
         # HS compressor
         pi_HS = sat_c.p / sat_m.p
         n_HS, ev_HS = par.comp_HS.speed_for_flow(m, sat_m.rho_g, pi_HS, self.n_HS)
@@ -324,12 +295,13 @@ class _Point:
             Q_DSH = Q_DSH_max
         h_DSH = h4 - Q_DSH / m
         r = (Q_con - m * (h_DSH - sat_c.h_f)) / self.Q_source
-        return dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
-                    h2s=h2s, T2s=T2s, rho2s=rho2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
-                    h4s=h4s, T4s=T4s, rho4s=rho4s, h4=h4, T4=T4, rho4=rho4, cp_l=cp_l, cp_v=cp_v,
-                    Q_SC=Q_SC, h_SC=h_SC, T_SC=T_SC,
-                    Q_con=Q_con, Q_DSH=Q_DSH, h_DSH=h_DSH, T_w1=T_w1, T_w2=T_w2,
-                    dsh_condensing=dsh_condensing, r=r)
+        d = dict(sat_m=sat_m, sat_c=sat_c, m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta_LS,
+                 h2s=h2s, T2s=T2s, rho2s=rho2s, h2=h2, m_HS=m, n_HS=n_HS, ev_HS=ev_HS, eta_HS=eta_HS,
+                 h4s=h4s, T4s=T4s, rho4s=rho4s, h4=h4, T4=T4, rho4=rho4, cp_l=cp_l, cp_v=cp_v,
+                 Q_SC=Q_SC, h_SC=h_SC, T_SC=T_SC,
+                 Q_con=Q_con, Q_DSH=Q_DSH, h_DSH=h_DSH, T_w1=T_w1, T_w2=T_w2,
+                 dsh_condensing=dsh_condensing, r=r)
+        return d
 
 
 # --------------------------------------------------------------------------------------------------
@@ -636,7 +608,7 @@ def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c:
         dp_source=par.CF_dp_f * par.dp_clean(inp.V_source), superheat=par.superheat,
         subcooling=T_c - T_SC_out, pinch=pinch, dsh_condensing=s["dsh_condensing"], states=states,
         T_source_out=inp.T_source_out,
-        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m, _cp_l=s["cp_l"],
+        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m, _cp_l=pt.cp_l or 0.0,
         _warm={k: getattr(pt, "_g_" + k) for k in ("LS", "HS") if getattr(pt, "_g_" + k, None)})
 
 

@@ -12,6 +12,8 @@ import math
 import numpy as np
 import pandas as pd
 
+from .analysis.compressors import eta_is_measured
+from .components import evaporator_UA
 from .fluid import PropertyError, get_fluid
 from .params import PlantParams
 from .units import BAR, C_to_K
@@ -53,16 +55,21 @@ def _range_reasons(df: pd.DataFrame, ranges: dict) -> pd.Series:
     return reason
 
 
-def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -> pd.DataFrame:
-    """Derived quantities of SPEC §4 for each one-minute sample.
+def derived(df: pd.DataFrame, params: PlantParams) -> pd.DataFrame:
+    """The derived quantities of SPEC §4 per sample (no usability judgement), on ``df``'s index.
 
     Columns: p_e_bar, p_m_bar, p_c_bar [bar absolute], dp_source_bar [bar], Q_sink_kW,
     Q_source_kW, W_total_kW [kW], COP [-], T_e_sat_C [degC, saturation at p_e], superheat_K [K],
     pi_LS, pi_HS [-], eta_is_LS_meas, eta_is_HS_meas [-], UA_eva_kW_K [kW/K],
     R_th_f_K_per_kW [K/kW] (point estimate against the clean evaporator with the current CF_eva),
-    usable [bool], reason [str].
+    heat_balance_pct [%] (Q_sink - Q_source - W_total relative to Q_sink: ~0 for adiabatic
+    compressors with drive factor 1; a flow meter drifting shows here).
     """
-    ranges = {**DEFAULT_RANGES, **(ranges or {})}
+    out, _ = _derived(df, params)
+    return out
+
+
+def _derived(df: pd.DataFrame, params: PlantParams):
     n = len(df)
     amb = params.ambient_pressure / BAR
     num = {c: pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) if c in df.columns
@@ -82,37 +89,47 @@ def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -
         out["COP"] = np.where(W > 0, out["Q_sink_kW"].to_numpy() / W, np.nan)
         out["pi_LS"] = out["p_m_bar"] / out["p_e_bar"]
         out["pi_HS"] = out["p_c_bar"] / out["p_m_bar"]
+        out["heat_balance_pct"] = 100.0 * (out["Q_sink_kW"] - out["Q_source_kW"] - W) / out["Q_sink_kW"]
 
     fl = get_fluid(params.fluid, params.backend)
     T_e_sat = np.full(n, np.nan)
     eta_LS = np.full(n, np.nan)
     eta_HS = np.full(n, np.nan)
-    UA = np.full(n, np.nan)
     prop_fail = np.zeros(n, dtype=bool)
     p_e = out["p_e_bar"].to_numpy() * BAR
     p_m = out["p_m_bar"].to_numpy() * BAR
     p_c = out["p_c_bar"].to_numpy() * BAR
     C_src = params.cp_w * params.rho_w * num["V_source"] / 3600.0
+    warm: dict = {}
     for i in range(n):
         try:
             if math.isfinite(p_e[i]) and 0 < p_e[i] < fl.p_crit:
                 T_e_sat[i] = fl.sat_p(p_e[i]).T
-            eta_LS[i] = _eta_is(fl, p_e[i], C_to_K(num["T_suc_LS"][i]), p_m[i], C_to_K(num["T_dis_LS"][i]))
-            eta_HS[i] = _eta_is(fl, p_m[i], C_to_K(num["T_suc_HS"][i]), p_c[i], C_to_K(num["T_dis_HS"][i]))
+            eta_LS[i] = eta_is_measured(fl, p_e[i], C_to_K(num["T_suc_LS"][i]), p_m[i],
+                                        C_to_K(num["T_dis_LS"][i]), warm, "LS")
+            eta_HS[i] = eta_is_measured(fl, p_m[i], C_to_K(num["T_suc_HS"][i]), p_c[i],
+                                        C_to_K(num["T_dis_HS"][i]), warm, "HS")
         except PropertyError:
             prop_fail[i] = True
-        # invert the evaporator: NTU = ln((T_in - T_e)/(T_out - T_e)), UA = NTU * C
-        T_in, T_out = C_to_K(num["T_source_in"][i]), C_to_K(num["T_source_out"][i])
-        Te = T_e_sat[i]
-        if math.isfinite(Te) and T_in > T_out > Te and C_src[i] > 0:
-            UA[i] = math.log((T_in - Te) / (T_out - Te)) * C_src[i]
     out["T_e_sat_C"] = T_e_sat - 273.15
     out["superheat_K"] = num["T_suc_LS"] - out["T_e_sat_C"]
     out["eta_is_LS_meas"] = eta_LS
     out["eta_is_HS_meas"] = eta_HS
+    # invert the evaporator on the measured evaporating temperature (model.components)
+    UA = evaporator_UA(C_to_K(num["T_source_in"]), C_to_K(num["T_source_out"]), T_e_sat, C_src)
     out["UA_eva_kW_K"] = UA / 1e3
     with np.errstate(divide="ignore", invalid="ignore"):
         out["R_th_f_K_per_kW"] = (1.0 / UA - 1.0 / params.UA_eva_clean) * 1e3
+    return out, {"num": num, "W": W, "T_e_sat": T_e_sat, "prop_fail": prop_fail}
+
+
+def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -> pd.DataFrame:
+    """Derived quantities of SPEC §4 for each one-minute sample (``derived``) plus ``usable``
+    [bool] and ``reason`` [str]."""
+    ranges = {**DEFAULT_RANGES, **(ranges or {})}
+    n = len(df)
+    out, aux = _derived(df, params)
+    num, W, T_e_sat, prop_fail = aux["num"], aux["W"], aux["T_e_sat"], aux["prop_fail"]
 
     # ---- usability ---------------------------------------------------------------------------
     reason = _range_reasons(df, ranges)
@@ -155,25 +172,6 @@ def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -
     out["usable"] = final == ""
     out["reason"] = final
     return out
-
-
-def _eta_is(fl, p_suc: float, T_suc: float, p_dis: float, T_dis: float) -> float:
-    """Measured isentropic efficiency from suction and discharge (p, T) [Pa, K]."""
-    if not all(math.isfinite(x) for x in (p_suc, T_suc, p_dis, T_dis)) or p_dis <= p_suc:
-        return math.nan
-    sat = fl.sat_p(p_suc)
-    if T_suc <= sat.T + 0.05:          # at/below saturation (sensor noise): take saturated vapour
-        h_suc, s_suc = sat.h_g, sat.s_g
-    else:
-        h_suc, s_suc, _ = fl.vapour_pT(p_suc, T_suc)
-    sat_d = fl.sat_p(p_dis)
-    if T_dis <= sat_d.T + 0.5:
-        return math.nan
-    h_dis, _, _ = fl.vapour_pT(p_dis, T_dis)
-    h_is, _, _ = fl.isentropic(p_dis, s_suc)
-    if h_dis - h_suc <= 0:
-        return math.nan
-    return (h_is - h_suc) / (h_dis - h_suc)
 
 
 def usable_counts(processed: pd.DataFrame) -> dict[str, int]:

@@ -2,21 +2,32 @@
 
 Objective: the period COP = sum(Q_sink) / sum(W_total) over the window's samples, simulated with the
 (adaptive) model at one set point p_m,sp for the whole window, subject to p_e <= p_m,sp <= p_c
-(window-wide: the highest p_e and the lowest p_c of the window at the current set points). The
-compressors' speed limits are the model's: below the set point the HS compressor can reach at
-1800 rpm it runs there and p_m floats above the set point, so COP(p_m,sp) is *flat* below that
-point (and above the point where the HS would need less than 700 rpm). A derivative-based search
-stalls on such plateaus, so the search is:
+(window-wide: the highest p_e and the lowest p_c of the window at the current set points) and the
+compressors' speed limits, which the model handles as the plant's controllers do
+(``ls_mode="float"``): below the set point the HS compressor can reach at 1800 rpm it runs there and
+p_m floats above the set point, so COP(p_m,sp) is *flat* there; at a set point that asks more of the
+LS compressor than 1800 rpm gives, T_source,out floats and the heat output drops. A derivative-based
+search stalls on plateaus, so the search is:
 
-1. a coarse scan of the whole bounded range (``coarse_step``, default 0.5 bar) on an evenly spaced
-   subsample of the window (cheap; it only has to find the right bracket);
-2. a bounded Brent search (``scipy.optimize.minimize_scalar(method="bounded")``) on the full window
-   within one coarse step either side of the best scan point, ``xtol`` 0.01 bar;
-3. the better of the Brent result and the best scan point, both evaluated on the full window.
+1. a coarse scan of the bounded range (``coarse_step``, default 0.5 bar) on a few of the window's
+   rows (cheap; it only has to find the right bracket);
+2. a bounded Brent search (``scipy.optimize.minimize_scalar(method="bounded")``) on the evaluation
+   rows within one coarse step either side of the best scan point, ``xtol`` 0.01 bar;
+3. the better of the Brent result and the best scan point.
 
-When the optimum lies on the plateau (every sample HS-saturated there), every set point below the
-floating p_m gives the same COP; the recommended set point is then the floating p_m itself (the
-lowest p_m the HS compressor can hold), reported with ``hs_saturated`` True.
+On the plateau (every row HS-saturated at the optimum) every set point below the floating p_m gives
+the same COP; the recommended set point is then the floating p_m itself (the lowest p_m the HS
+compressor can hold), reported with ``hs_saturated`` True.
+
+Evaluation rows: the whole window, or (``representative=k``) k representative operating points —
+the window's samples grouped in k equal-count quantiles along the first principal component of their
+(normalised) inputs, each group replaced by its mean and weighted by its size. The period COP is then
+sum(w Q) / sum(w W). The answer is re-checked on the whole window (COP and heat output at the optimum
+and at the actual set point come from the whole window). This is the approximation that makes replay
+an order of magnitude cheaper (issue #12); the benchmark states how far it moves the optimum.
+
+``feasible(frame) -> bool`` restricts the set points (e.g. to the region where learned compressor
+curves are trusted, issue #8); infeasible candidates count as no solution.
 
 Set points are in bar(g) like the PLC's register (``_barg``); pressures in bar absolute (``_bar_a``).
 A sample the model cannot solve at the window's actual set points is left out of the window; a
@@ -26,21 +37,25 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from .batch import INPUT_COLUMNS, simulate_batch, solved_mask
+from .batch import INPUT_COLUMNS, simulate_batch
 from .params import PlantParams
+from .units import Pa_to_barg
 
 COARSE_STEP = 0.5         # bar, coarse scan resolution
 XTOL = 0.01               # bar, Brent tolerance on the set point
-SUBSAMPLE = 12            # samples used by the coarse scan
+SUBSAMPLE = 12            # rows used by the coarse scan
 BOUND_MARGIN = 0.05       # bar, kept clear of p_e and p_c
 PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
-_COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP")
+SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
+COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP",
+           "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C")
 
 
 class OptimizationError(ValueError):
@@ -67,8 +82,9 @@ class SetpointResult:
     bounds_barg: tuple[float, float]
     n_samples: int
     n_dropped: int
-    model_evaluations: int          # window (or subsample) simulations
+    model_evaluations: int          # evaluations of the evaluation rows (or the scan subsample)
     run_time_s: float
+    n_eval_rows: int = 0            # rows the search evaluated (representative points or all)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -82,132 +98,223 @@ class SetpointResult:
                 f"  COP {self.COP_actual:.3f} -> {self.COP_opt:.3f} ({self.dCOP_opt_pct:+.2f} %), heat "
                 f"{self.Q_sink_actual_kW:.0f} -> {self.Q_sink_opt_kW:.0f} kW ({self.dQ_sink_opt_pct:+.2f} %); "
                 f"against the geometric mean {self.dCOP_gm_pct:+.2f} % COP, {self.dQ_sink_gm_pct:+.2f} % heat\n"
-                f"  {self.n_samples} samples ({self.n_dropped} left out), {self.model_evaluations} window "
-                f"simulations, {self.run_time_s:.2f} s")
+                f"  {self.n_samples} samples ({self.n_dropped} left out), {self.model_evaluations} "
+                f"evaluations of {self.n_eval_rows} rows, {self.run_time_s:.2f} s")
 
 
-class _Window:
-    def __init__(self, data: pd.DataFrame, params: PlantParams):
+@dataclass
+class Point:
+    """The period figures of the evaluation rows at one set point."""
+    sp: float                       # set point [bar(g)]
+    COP: float                      # sum(w Q) / sum(w W); NaN when a row is not solved
+    Q_sink_kW: float                # weighted mean
+    W_kW: float
+    hs_saturated: bool              # every row HS-saturated
+    frame: pd.DataFrame             # per-row model outputs
+
+    @property
+    def ok(self) -> bool:
+        return math.isfinite(self.COP)
+
+
+def representative(data: pd.DataFrame, k: int) -> tuple[pd.DataFrame, np.ndarray]:
+    """k representative rows of ``data`` (canonical inputs) and their weights (sample counts).
+
+    Samples are sorted along the first principal component of their standardised inputs and split
+    into k groups of (nearly) equal size; each group is replaced by its mean. With k >= len(data)
+    the data itself (weights 1)."""
+    X = data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    n = len(X)
+    if k >= n:
+        return data[list(INPUT_COLUMNS)].copy(), np.ones(n)
+    sd = X.std(axis=0)
+    Z = (X - X.mean(axis=0)) / np.where(sd > 0, sd, 1.0)
+    try:
+        _, _, Vt = np.linalg.svd(Z, full_matrices=False)
+        order = np.argsort(Z @ Vt[0], kind="stable")
+    except np.linalg.LinAlgError:
+        order = np.arange(n)
+    groups = np.array_split(order, k)
+    rows = np.array([X[g].mean(axis=0) for g in groups if len(g)])
+    w = np.array([len(g) for g in groups if len(g)], dtype=float)
+    return pd.DataFrame(rows, columns=list(INPUT_COLUMNS)), w
+
+
+class Evaluator:
+    """Simulates evaluation rows at a set point (one value for all rows), with a cache."""
+
+    def __init__(self, rows: pd.DataFrame, weights: np.ndarray, params: PlantParams,
+                 ls_mode: str = "float") -> None:
+        self.rows = rows.reset_index(drop=True)
+        self.w = np.asarray(weights, dtype=float)
         self.params = params
-        self.data = data
+        self.ls_mode = ls_mode
         self.evals = 0
+        self._cache: dict[float | None, Point] = {}
 
-    def sim(self, sp, rows=None) -> pd.DataFrame:
+    def at(self, sp: float | None, rows: np.ndarray | None = None) -> Point:
+        """Figures at set point ``sp`` [bar(g)] (None: each row's own p_m_sp). ``rows`` picks a
+        subset (not cached)."""
+        key = None if sp is None else round(float(sp), 9)
+        if rows is None and key in self._cache:
+            return self._cache[key]
         self.evals += 1
-        d = self.data if rows is None else self.data.iloc[rows]
-        return simulate_batch(d, self.params, p_m_sp=sp, columns=_COLUMNS)
+        d = self.rows if rows is None else self.rows.iloc[rows]
+        w = self.w if rows is None else self.w[rows]
+        f = simulate_batch(d, self.params, p_m_sp=sp, columns=COLUMNS, ls_mode=self.ls_mode)
+        p = _point(sp, f, w)
+        if rows is None:
+            self._cache[key] = p
+        return p
 
 
-def _period(frame: pd.DataFrame) -> tuple[float, float, bool]:
-    """(period COP, mean Q_sink, every sample HS-saturated); NaNs when a sample is not solved."""
-    ok = solved_mask(frame)
+def _point(sp, frame: pd.DataFrame, w: np.ndarray) -> Point:
+    ok = np.isin(frame["status"].to_numpy(), SOLVED)
     Q = frame["Q_sink_kW"].to_numpy(dtype=float)
     W = frame["W_total_kW"].to_numpy(dtype=float)
     if not ok.all():
-        return math.nan, math.nan, False
-    return float(Q.sum() / W.sum()), float(Q.mean()), bool(frame["hs_saturated"].to_numpy(dtype=float).min() > 0.5)
+        return Point(math.nan if sp is None else sp, math.nan, math.nan, math.nan, False, frame)
+    sat = bool(frame["hs_saturated"].to_numpy(dtype=float).min() > 0.5)
+    return Point(math.nan if sp is None else sp, float((w * Q).sum() / (w * W).sum()),
+                 float((w * Q).sum() / w.sum()), float((w * W).sum() / w.sum()), sat, frame)
+
+
+def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP,
+           xtol: float = XTOL, subsample: int = SUBSAMPLE,
+           feasible: Callable[[Point], bool] | None = None) -> tuple[float, Point]:
+    """The set point in [lo, hi] with the highest period COP of the evaluator's rows (see the module
+    docstring); ``feasible`` rejects candidates. Returns (set point, its Point) with the plateau
+    convention applied. Raises OptimizationError when no candidate solves (and is feasible)."""
+    n = len(ev.rows)
+
+    def value(p: Point) -> float:
+        if not p.ok or (feasible is not None and not feasible(p)):
+            return -math.inf
+        return p.COP
+
+    rows = np.unique(np.linspace(0, n - 1, min(subsample, n)).round().astype(int))
+    grid = np.arange(lo, hi + 1e-9, coarse_step)
+    if grid[-1] < hi - 1e-9:
+        grid = np.append(grid, hi)
+    sub = rows if len(rows) < n else None
+    scan = np.array([value(ev.at(float(sp), sub)) for sp in grid])
+    if not np.isfinite(scan).any():
+        raise OptimizationError("no set point in the range solves every sample of the window"
+                                + (" within the trusted region" if feasible else ""))
+    best = float(scan.max())
+    ties = np.flatnonzero(scan >= best - PLATEAU_RTOL * abs(best))
+    i = int(ties[-1])       # on a plateau: its upper end (nearest to where p_m follows the set point)
+    a, b = max(lo, float(grid[i]) - coarse_step), min(hi, float(grid[i]) + coarse_step)
+    # keep Brent inside the feasible stretch around the best scan point
+    if feasible is not None:
+        j = i
+        while j > 0 and np.isfinite(scan[j - 1]):
+            j -= 1
+        a = max(a, float(grid[j]) if j < i else float(grid[i]))
+        j = i
+        while j < len(grid) - 1 and np.isfinite(scan[j + 1]):
+            j += 1
+        b = min(b, float(grid[j]) if j > i else float(grid[i]))
+
+    def neg(sp: float) -> float:
+        v = value(ev.at(sp))
+        return -v if math.isfinite(v) else 1e6
+
+    cands = [float(grid[i])]
+    if b - a > xtol:
+        res = minimize_scalar(neg, bounds=(a, b), method="bounded", options={"xatol": xtol})
+        cands.insert(0, float(res.x))
+    sp_opt = min(cands, key=lambda s: (neg(s), cands.index(s)))
+    p = ev.at(sp_opt)
+    if not math.isfinite(value(p)):
+        raise OptimizationError("the optimum found does not solve every sample")
+    if p.hs_saturated:   # plateau: the set point that just reaches the floating p_m
+        amb = ev.params.ambient_pressure
+        p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5
+        sp_opt = float(Pa_to_barg(p_m, amb / 1e5))
+    return sp_opt, p
+
+
+def window_range(ref: pd.DataFrame, ambient_bar: float,
+                 bounds_barg: tuple[float, float] | None = None) -> tuple[float, float]:
+    """[highest p_e, lowest p_c] of the window at its actual set points, as set points [bar(g)]
+    with BOUND_MARGIN; intersected with ``bounds_barg``."""
+    lo = float(ref["p_e_bar"].max()) - ambient_bar + BOUND_MARGIN
+    hi = float(ref["p_c_bar"].min()) - ambient_bar - BOUND_MARGIN
+    if bounds_barg is not None:
+        lo, hi = max(lo, bounds_barg[0]), min(hi, bounds_barg[1])
+    if not hi > lo:
+        raise OptimizationError(f"empty set-point range [{lo:.2f}, {hi:.2f}] bar(g)")
+    return lo, hi
 
 
 def optimize_setpoint(data: pd.DataFrame, params: PlantParams, coarse_step: float = COARSE_STEP,
                       xtol: float = XTOL, subsample: int = SUBSAMPLE,
-                      bounds_barg: tuple[float, float] | None = None) -> SetpointResult:
-    """Optimum p_m,sp for the window ``data`` (canonical inputs incl. the actual ``p_m_sp``)."""
+                      bounds_barg: tuple[float, float] | None = None,
+                      representative_points: int | None = None,
+                      feasible: Callable[[Point], bool] | None = None) -> SetpointResult:
+    """Optimum p_m,sp for the window ``data`` (canonical inputs incl. the actual ``p_m_sp``).
+
+    representative_points : search on that many representative points instead of every sample
+        (the reported COPs and heat outputs are still those of the whole window).
+    """
     t0 = time.perf_counter()
     missing = [c for c in INPUT_COLUMNS if c not in data.columns]
     if missing:
         raise OptimizationError(f"window lacks input columns: {', '.join(missing)}")
     amb = params.ambient_pressure / 1e5
-    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce")
-    win = _Window(data, params)
-    ref = win.sim(None)
-    ok = solved_mask(ref)
+    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    full = Evaluator(data, np.ones(len(data)), params)
+    ref = full.at(None)
+    ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
     n_dropped = int((~ok).sum())
     if not ok.any():
         raise OptimizationError("the model solves none of the window's samples at their actual set points")
-    data = data.loc[ok]
-    ref = ref.loc[ok]
-    win.data = data
+    data = data.loc[ok].reset_index(drop=True)
+    full = Evaluator(data, np.ones(len(data)), params)
+    ref = full.at(None)
     n = len(data)
-    COP_act = float(ref["Q_sink_kW"].sum() / ref["W_total_kW"].sum())
-    Q_act = float(ref["Q_sink_kW"].mean())
-    p_e = ref["p_e_bar"].to_numpy(dtype=float)
-    p_c = ref["p_c_bar"].to_numpy(dtype=float)
+    lo, hi = window_range(ref.frame, amb, bounds_barg)
+    if representative_points and representative_points < n:
+        rows, w = representative(data, representative_points)
+        ev = Evaluator(rows, w, params)
+    else:
+        ev = full
+    sp_opt, p = search(ev, lo, hi, coarse_step, xtol, subsample, feasible)
+    opt = full.at(sp_opt) if ev is not full else p
+    if not opt.ok:
+        raise OptimizationError("the optimum found does not solve every sample of the window")
+    p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
+    p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
     gm_abs = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
-    lo = float(p_e.max()) - amb + BOUND_MARGIN
-    hi = float(p_c.min()) - amb - BOUND_MARGIN
-    if bounds_barg is not None:
-        lo, hi = max(lo, bounds_barg[0]), min(hi, bounds_barg[1])
-    if not hi > lo:
-        raise OptimizationError(f"empty set-point range [{lo:.2f}, {hi:.2f}] bar(g)")
-
-    cache: dict[float, tuple] = {}
-
-    def full(sp: float) -> tuple:
-        key = round(sp, 9)
-        if key not in cache:
-            f = win.sim(sp)
-            cache[key] = (_period(f), f)
-        return cache[key]
-
-    def neg_cop(sp: float) -> float:
-        (cop, _, _), _ = full(sp)
-        return -cop if math.isfinite(cop) else 1e6
-
-    # 1. coarse scan on a subsample
-    rows = np.unique(np.linspace(0, n - 1, min(subsample, n)).round().astype(int))
-    grid = np.arange(lo, hi + 1e-9, coarse_step)
-    if grid[-1] < hi - 1e-9:
-        grid = np.append(grid, hi)
-    scan = []
-    for sp in grid:
-        f = win.sim(float(sp), rows=rows)
-        cop, _, _ = _period(f)
-        scan.append(cop if math.isfinite(cop) else -math.inf)
-    scan = np.array(scan)
-    if not np.isfinite(scan).any():
-        raise OptimizationError("no set point in the range solves every sample of the window")
-    best = float(scan.max())
-    ties = np.flatnonzero(scan >= best - PLATEAU_RTOL * abs(best))
-    i = int(ties[-1])       # on a plateau: its upper end (nearest to where p_m follows the set point)
-    a, b = max(lo, float(grid[i]) - coarse_step), min(hi, float(grid[i]) + coarse_step)
-    # 2. Brent on the full window in the bracket
-    res = minimize_scalar(neg_cop, bounds=(a, b), method="bounded", options={"xatol": xtol})
-    cands = [float(res.x), float(grid[i])]
-    # 3. the better of the two (ties -> the Brent point)
-    sp_opt = min(cands, key=lambda s: (neg_cop(s), cands.index(s)))
-    (cop_opt, q_opt, saturated), f_opt = full(sp_opt)
-    if not math.isfinite(cop_opt):
-        raise OptimizationError("the optimum found does not solve every sample")
-    p_m_opt = float(f_opt["p_m_bar"].mean())
-    if saturated:
-        sp_opt = p_m_opt - amb
-    gm_sp = min(max(gm_abs - amb, lo), hi)
-    (cop_gm, q_gm, _), _ = full(gm_sp)
+    gm = full.at(min(max(gm_abs - amb, lo), hi))
     return SetpointResult(
-        p_m_sp_opt_barg=sp_opt, p_m_opt_bar_a=p_m_opt, p_m_gm_bar_a=gm_abs,
-        p_m_sp_actual_barg=float(data["p_m_sp"].mean()), COP_opt=cop_opt, COP_actual=COP_act,
-        COP_gm=cop_gm, Q_sink_opt_kW=q_opt, Q_sink_actual_kW=Q_act, Q_sink_gm_kW=q_gm,
-        dCOP_opt_pct=100.0 * (cop_opt / COP_act - 1.0), dQ_sink_opt_pct=100.0 * (q_opt / Q_act - 1.0),
-        dCOP_gm_pct=100.0 * (cop_opt / cop_gm - 1.0) if math.isfinite(cop_gm) else math.nan,
-        dQ_sink_gm_pct=100.0 * (q_opt / q_gm - 1.0) if math.isfinite(q_gm) else math.nan,
-        hs_saturated=saturated, bounds_barg=(lo, hi), n_samples=n, n_dropped=n_dropped,
-        model_evaluations=win.evals, run_time_s=time.perf_counter() - t0)
+        p_m_sp_opt_barg=sp_opt, p_m_opt_bar_a=float(opt.frame["p_m_bar"].mean()), p_m_gm_bar_a=gm_abs,
+        p_m_sp_actual_barg=float(data["p_m_sp"].mean()), COP_opt=opt.COP, COP_actual=ref.COP,
+        COP_gm=gm.COP, Q_sink_opt_kW=opt.Q_sink_kW, Q_sink_actual_kW=ref.Q_sink_kW,
+        Q_sink_gm_kW=gm.Q_sink_kW,
+        dCOP_opt_pct=100.0 * (opt.COP / ref.COP - 1.0),
+        dQ_sink_opt_pct=100.0 * (opt.Q_sink_kW / ref.Q_sink_kW - 1.0),
+        dCOP_gm_pct=100.0 * (opt.COP / gm.COP - 1.0) if gm.ok else math.nan,
+        dQ_sink_gm_pct=100.0 * (opt.Q_sink_kW / gm.Q_sink_kW - 1.0) if gm.ok else math.nan,
+        hs_saturated=p.hs_saturated, bounds_barg=(lo, hi), n_samples=n, n_dropped=n_dropped,
+        model_evaluations=full.evals + (ev.evals if ev is not full else 0),
+        run_time_s=time.perf_counter() - t0, n_eval_rows=len(ev.rows))
 
 
 def sweep(data: pd.DataFrame, params: PlantParams, step: float = 0.05,
           bounds_barg: tuple[float, float] | None = None) -> pd.DataFrame:
     """Brute-force period COP over set points (for checks): columns p_m_sp_barg, COP, Q_sink_kW."""
     amb = params.ambient_pressure / 1e5
-    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce")
-    ref = simulate_batch(data, params, columns=_COLUMNS)
-    ok = solved_mask(ref)
-    data, ref = data.loc[ok], ref.loc[ok]
-    lo = float(ref["p_e_bar"].max()) - amb + BOUND_MARGIN
-    hi = float(ref["p_c_bar"].min()) - amb - BOUND_MARGIN
-    if bounds_barg is not None:
-        lo, hi = max(lo, bounds_barg[0]), min(hi, bounds_barg[1])
+    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    ev = Evaluator(data, np.ones(len(data)), params)
+    ref = ev.at(None)
+    ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
+    ev = Evaluator(data.loc[ok], np.ones(int(ok.sum())), params)
+    lo, hi = window_range(ev.at(None).frame, amb, bounds_barg)
     rows = []
     for sp in np.arange(lo, hi + 1e-9, step):
-        cop, q, sat = _period(simulate_batch(data, params, p_m_sp=float(sp), columns=_COLUMNS))
-        rows.append({"p_m_sp_barg": float(sp), "COP": cop, "Q_sink_kW": q, "hs_saturated": sat})
+        p = ev.at(float(sp))
+        rows.append({"p_m_sp_barg": float(sp), "COP": p.COP, "Q_sink_kW": p.Q_sink_kW,
+                     "hs_saturated": p.hs_saturated})
     return pd.DataFrame(rows)

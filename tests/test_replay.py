@@ -9,7 +9,7 @@ import pytest
 
 from edge.cli import main
 from model.measured import process
-from model.replay import CIP_COLUMNS, ReplayError, ReplaySettings, detect_cips, replay
+from model.analysis.replay import CIP_COLUMNS, ReplayError, ReplaySettings, detect_cips, replay
 from model.synthetic import Noise, Operation, Truth, generate
 
 R_TOL = 0.2e-3             # K/kW per window (issue #4)
@@ -17,11 +17,12 @@ CF_DP_TOL = 0.02           # per window (issue #4)
 CIP_SHARE_TOL = 5.0        # percentage points, removed share of R_th,f (issue #4)
 CF_EVA_REL_TOL = 0.03
 REQUIRED_WINDOW_COLUMNS = (
-    "window_start", "window_end", "n_samples", "R_th_f_K_per_kW", "R_th_f_share", "CF_dp_f",
+    "window_start", "window_end", "n_samples", "R_th_f_K_per_kW", "R_th_f_share_pct", "CF_dp_f",
     "nrmse_p_e", "nrmse_dp_source", "nrmse_COP_fixed", "nrmse_COP_adaptive", "nrmse_Q_sink_fixed",
-    "nrmse_Q_sink_adaptive", "p_m_opt_bar_a", "p_m_gm_bar_a", "dCOP_opt_pct", "dQ_sink_opt_pct")
-REQUIRED_CIP_COLUMNS = ("cip_start", "cip_end", "R_th_f_before", "R_th_f_after", "R_th_f_removed_pct",
-                        "CF_dp_f_before", "CF_dp_f_after")
+    "nrmse_Q_sink_adaptive", "p_m_opt_barg", "p_m_gm_barg", "dCOP_opt_pct", "dQ_sink_opt_pct",
+    "p_m_sp_opt_barg", "status", "advice_confident", "dCOP_opt_sd_pct")
+REQUIRED_CIP_COLUMNS = ("cip_start", "cip_end", "R_th_f_before_K_per_kW", "R_th_f_after_K_per_kW",
+                        "R_th_f_removed_pct", "CF_dp_f_before", "CF_dp_f_after")
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def test_windows_recover_fouling_in_every_window(result, history):
         tr = _truth_in(history, row["window_start"], row["window_end"])
         assert abs(row["R_th_f_K_per_kW"] - tr["R_th_f_K_per_kW"].mean()) <= R_TOL, row["window_start"]
         assert abs(row["CF_dp_f"] - tr["CF_dp_f"].mean()) <= CF_DP_TOL, row["window_start"]
-        assert 0.0 < row["R_th_f_share"] < 1.0
+        assert 0.0 < row["R_th_f_share_pct"] < 100.0
     # the windows next to the CIP touch it and none straddles it
     cip = result.cips.iloc[0]
     ends = pd.to_datetime(ok["window_end"], utc=True)
@@ -81,7 +82,7 @@ def test_cip_table_reports_removed_share(result, history):
     assert pd.Timestamp(c["cip_start"]) == truth["start"]
     assert c["detected_by"] == "cip_flag"
     assert abs(c["R_th_f_removed_pct"] - truth["removed_pct"]) <= CIP_SHARE_TOL
-    assert c["R_th_f_after"] < c["R_th_f_before"]
+    assert c["R_th_f_after_K_per_kW"] < c["R_th_f_before_K_per_kW"]
     assert c["CF_dp_f_after"] < c["CF_dp_f_before"]
 
 

@@ -246,7 +246,7 @@ def cmd_calibrate_initial(args) -> int:
     from model.calibration import CalibrationError, calibrate, calibration_frame, spec_from_config
     from model.dpfit import DpFitError, fit_dp_clean
     from model.measured import process
-    from model.replay import ReplaySettings
+    from model.analysis.replay import ReplaySettings
     try:
         params, hist, window = _load(args)
         processed = process(hist, params)
@@ -401,7 +401,7 @@ def cmd_replay(args) -> int:
                                  write_state)
     from model.calibration import CalibrationError
     from model.dpfit import DpFitError
-    from model.replay import ReplayError, ReplaySettings, replay
+    from model.analysis.replay import ReplayError, ReplaySettings, replay
     try:
         params = _params(args.config)
         hist, skipped, nn = read_history_csv(args.history)

@@ -1,47 +1,47 @@
-"""Replay of a plant history: the papers' analysis, reproducible for any plant (SPEC §5-6).
+"""Replay of a plant history: the papers' analysis, reproducible for any plant (SPEC §5-6, §9).
 
-``replay(history, params)`` is a pure function over DataFrames:
+``replay(history, params)`` loops the one analysis chain (``model.analysis.chain``) over the history,
+causally by default: each window's calibration, learned compressor curves and advice use only the data
+up to that window's end — exactly what the gateway would have known then — so a replay of a SCADA
+export shows what hp-edge would have advised. ``hindsight=True`` learns the compressors on the whole
+history first.
 
 1. measured-side processing (``model.measured.process``): derived quantities and a usable flag with
    a reason per sample (unusable samples are counted per reason, never silently dropped);
-2. initial calibration (CF_DSH, CF_con, CF_SC, CF_eva) and the clean pressure-drop fit on the initial
-   window: by default the first ``initial_minutes`` usable minutes (commissioning data). Their result
-   is the **fixed model**;
+2. initial calibration (CF_DSH, CF_con, CF_SC, CF_eva), the clean pressure-drop fit and the first
+   compressor learning on the initial window: by default the first ``initial_minutes`` usable
+   minutes (commissioning data). Their result is the **fixed model**;
 3. CIP periods: runs of samples with the cip flag, or plant stops longer than ``cip_off_minutes``;
 4. per window of usable operation (each stretch of operation between CIPs is tiled evenly with
    windows of about ``window_hours``, so windows never straddle a CIP and the windows next to one
-   touch it): the fouling
-   calibration (R_th,f, CF_dp,f) on the fixed model -> the **adaptive model**; NRMSE of COP and heat
-   output of both models; the set-point optimization with the adaptive model;
+   touch it): ``AnalysisChain.window`` — fouling calibration -> the **adaptive model**, the window
+   figures, the learned curves and the advice;
 5. per CIP: R_th,f and CF_dp,f of the windows just before and just after, and the removed share.
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pandas as pd
 
-from .batch import simulate_batch, solved_mask
-from .calibration import (CalibrationError, CalibrationResult, calibrate, calibration_frame,
-                          evaporator_share, spec_from_config)
-from .dpfit import DpCleanFit, DpFitError, fit_dp_clean
-from .measured import process, usable_counts
-from .optimize import OptimizationError, optimize_setpoint
-from .params import PlantParams
-from .units import BAR, M3H
+from ..calibration import CalibrationError, CalibrationResult, calibrate, calibration_frame, spec_from_config
+from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
+from ..measured import process, usable_counts
+from ..params import PlantParams
+from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, ChainState, WindowResult
+from .compressors import STAGES, observe
 
-WINDOW_COLUMNS = (
-    "window_start", "window_end", "n_samples", "R_th_f_K_per_kW", "R_th_f_se_K_per_kW", "R_th_f_share",
-    "CF_dp_f", "CF_dp_f_se", "dp_fouling_bar", "nrmse_p_e", "nrmse_dp_source", "nrmse_COP_fixed",
-    "nrmse_COP_adaptive", "nrmse_Q_sink_fixed", "nrmse_Q_sink_adaptive", "COP_measured",
-    "COP_fixed", "COP_adaptive", "p_m_sp_actual_barg", "p_m_sp_opt_barg", "p_m_opt_bar_a",
-    "p_m_gm_bar_a", "dCOP_opt_pct", "dQ_sink_opt_pct", "dCOP_gm_pct", "dQ_sink_gm_pct",
-    "hs_saturated_opt", "calibration_warnings", "status")
-CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before", "R_th_f_after",
-               "R_th_f_removed_pct", "CF_dp_f_before", "CF_dp_f_after")
+WINDOW_COLUMNS = ROW_COLUMNS
+CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before_K_per_kW",
+               "R_th_f_after_K_per_kW", "R_th_f_removed_pct", "CF_dp_f_before", "CF_dp_f_after")
+SAMPLE_COLUMNS = ("timestamp", "usable", "reason", "window_start", "COP_measured", "COP_fixed",
+                  "COP_adaptive", "Q_sink_kW_measured", "Q_sink_kW_fixed", "Q_sink_kW_adaptive",
+                  "p_e_bar_measured", "eta_is_LS_meas", "eta_is_HS_meas", "eta_is_LS_model",
+                  "eta_is_HS_model", "pi_LS", "pi_HS", "N_LS_rpm", "N_HS_rpm", "p_m_sp_barg",
+                  "heat_balance_pct")
 
 
 class ReplayError(ValueError):
@@ -58,6 +58,7 @@ class ReplaySettings:
     max_gap_minutes: float = 30.0     # a hole in the record longer than this ends a window segment
     optimize: bool = True
     dp_form: str = "auto"
+    hindsight: bool = False           # learn the compressors on the whole history first
 
     @classmethod
     def from_config(cls, extra: dict | None, **overrides) -> "ReplaySettings":
@@ -102,6 +103,9 @@ class ReplayResult:
     settings: ReplaySettings
     last_fouling: CalibrationResult | None = None
     notes: list[str] = field(default_factory=list)
+    samples: pd.DataFrame | None = None   # per-minute series (SAMPLE_COLUMNS)
+    compressors: dict | None = None       # the learner's state at the end (compressors.json)
+    meta: dict = field(default_factory=dict)
 
     def summary(self) -> str:
         w = self.windows
@@ -118,25 +122,47 @@ class ReplayResult:
         L.append(f"windows of {self.settings.window_hours:g} h: {len(ok)} calibrated"
                  + (", skipped: " + ", ".join(f"{k}: {v}" for k, v in self.windows_skipped.items())
                     if self.windows_skipped else ""))
+        def rng_of(frame, col, fmt, scale=1.0):
+            return f"{fmt.format(frame[col].min() * scale)} .. {fmt.format(frame[col].max() * scale)}"
         if len(ok):
             def rng(col, fmt, scale=1.0):
-                return f"{fmt.format(ok[col].min() * scale)} .. {fmt.format(ok[col].max() * scale)}"
+                return rng_of(ok, col, fmt, scale)
             L.append(f"  fouling resistance R_th,f  {rng('R_th_f_K_per_kW', '{:.2f}', 1e3)} e-3 K/kW, "
-                     f"{rng('R_th_f_share', '{:.0f}', 100)} % of the evaporator resistance")
+                     f"{rng('R_th_f_share_pct', '{:.0f}')} % of the evaporator resistance")
             L.append(f"  pressure-drop factor CF_dp,f {rng('CF_dp_f', '{:.3f}')}")
             L.append(f"  COP NRMSE: fixed model {100 * ok['nrmse_COP_fixed'].mean():.2f} %, adaptive "
                      f"{100 * ok['nrmse_COP_adaptive'].mean():.2f} %; heat output NRMSE: fixed "
                      f"{100 * ok['nrmse_Q_sink_fixed'].mean():.2f} %, adaptive "
                      f"{100 * ok['nrmse_Q_sink_adaptive'].mean():.2f} % (means over windows)")
-            if ok["p_m_opt_bar_a"].notna().any():
-                L.append(f"  optimal p_m {rng('p_m_opt_bar_a', '{:.2f}')} bar a (geometric mean "
-                         f"{rng('p_m_gm_bar_a', '{:.2f}')}); COP +{ok['dCOP_opt_pct'].mean():.2f} % and heat "
-                         f"{ok['dQ_sink_opt_pct'].mean():+.2f} % on average against the actual set points")
+            adv = ok[ok["optimization_ok"].astype(bool)]
+            if len(adv):
+                conf = adv[adv["advice_confident"].astype(bool)]
+                L.append(f"  set-point advice in {len(adv)} windows, confident in {len(conf)} "
+                         f"({100 * len(conf) / len(adv):.0f} %)")
+                if len(conf):
+                    L.append(f"    recommended p_m,sp {rng_of(conf, 'p_m_sp_opt_barg', '{:.2f}')} bar(g) "
+                             f"(geometric mean {rng_of(conf, 'p_m_gm_barg', '{:.2f}')}); expected COP "
+                             f"{conf['dCOP_opt_pct'].mean():+.2f} % (sd {conf['dCOP_opt_sd_pct'].mean():.2f} %)"
+                             f" and heat {conf['dQ_sink_opt_pct'].mean():+.2f} % on average against the "
+                             f"actual set points")
+                notes_ = adv.loc[~adv["advice_confident"].astype(bool), "advice_note"]
+                if len(notes_):
+                    top = notes_.str.replace(r"\s*\(.*?\)|[-+]?\d[\d.]*", "", regex=True).value_counts()
+                    L.append("    not confident: " + "; ".join(f"{k.strip()} ({v})" for k, v in top.head(3).items()))
+            for st in STAGES:
+                d = ok[f"eta_is_{st}_drift_pct"].dropna()
+                if len(d):
+                    L.append(f"  {st} compressor eta_is against commissioning: {d.iloc[-1]:+.2f} points "
+                             f"(last window)")
+            if self.compressors:
+                loc = self.compressors.get("T_c_location", "")
+                L.append(f"  T_c is read as the {loc.replace('_', ' ')}; drive factors LS "
+                         f"{ok['drive_factor_LS'].iloc[-1]:.3f}, HS {ok['drive_factor_HS'].iloc[-1]:.3f}")
         if len(self.cips):
             L.append(f"CIPs: {len(self.cips)}")
             for _, c in self.cips.iterrows():
                 L.append(f"  {c['cip_start']} .. {c['cip_end']} ({c['duration_h']:.1f} h, {c['detected_by']}): "
-                         f"R_th,f {1e3 * c['R_th_f_before']:.2f} -> {1e3 * c['R_th_f_after']:.2f} e-3 K/kW "
+                         f"R_th,f {1e3 * c['R_th_f_before_K_per_kW']:.2f} -> {1e3 * c['R_th_f_after_K_per_kW']:.2f} e-3 K/kW "
                          f"({c['R_th_f_removed_pct']:.1f} % removed), CF_dp,f {c['CF_dp_f_before']:.3f} -> "
                          f"{c['CF_dp_f_after']:.3f}")
         else:
@@ -192,12 +218,13 @@ def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
 
 def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings | None = None,
            initial_window: tuple | None = None, processed: pd.DataFrame | None = None,
-           progress=None) -> ReplayResult:
+           progress=None, chain_settings: ChainSettings | None = None) -> ReplayResult:
     """Replay ``history`` (canonical columns + ``timestamp``) on the plant ``params`` (plant.yaml).
 
     initial_window : (start, end) timestamps; default the first ``initial_minutes`` usable minutes.
     processed : the output of ``model.measured.process`` when the caller already has it.
     progress : callable(done, total) called once per window.
+    chain_settings : default from plant.yaml (advice, compressor_learning).
     """
     t0 = time.perf_counter()
     s = settings or ReplaySettings.from_config(params.extra)
@@ -235,15 +262,59 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
         dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
     except DpFitError as exc:
         raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
-    c = dpfit.coef_bar
-    fixed = initial.apply(params).replace(
-        R_th_f=0.0, CF_dp_f=1.0, dp_clean_coef=(c[0] * BAR, c[1] * BAR / M3H, c[2] * BAR / M3H ** 2))
+    chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
+                          chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
+                                                                      min_samples=int(s.min_samples)))
+    state = chain.new_state(initial.to_dict(), dpfit.to_dict())
     if not initial.identifiable:
         notes.append("the initial calibration is not fully identifiable (see its warnings); the fixed "
                      "model still reproduces its targets, but the named factors are not individually "
                      "meaningful")
+    chain.commission(state, history.loc[init_mask].assign(timestamp=ts[init_mask]))
+    if s.hindsight and state.learner is not None:
+        state.learner.update(observe(history.loc[usable].assign(timestamp=ts[usable]), state.fixed,
+                                     chain.s.learning))
+        notes.append("hindsight: the compressor curves were learned on the whole history first")
 
-    # ---- CIPs and windows ---------------------------------------------------------------------
+    plan, skipped, cips = plan_windows(ts, processed, history, init_idx, s, notes)
+    rows: list[dict] = []
+    sample_parts: list[pd.DataFrame] = []
+    if progress is not None:
+        progress(0, len(plan))
+    for n_done, (m, new_seg) in enumerate(plan, start=1):
+        if new_seg:
+            chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
+        data = history.loc[m].assign(timestamp=ts[m])
+        res = chain.window(data, state)
+        if not res.ok:
+            key = res.status.split(":")[0] + ": " + res.status.split(":")[1].strip() if ":" in res.status \
+                else res.status
+            skipped[key] = skipped.get(key, 0) + 1
+        rows.append(res.row())
+        sample_parts.append(_window_samples(data, res, state))
+        if progress is not None:
+            progress(n_done, len(plan))
+    windows = pd.DataFrame(rows, columns=list(WINDOW_COLUMNS))
+    cip_rows = _cip_table(cips, windows, s.cip_windows)
+    samples = _all_samples(history, ts, processed, sample_parts)
+    meta = {"period_start": ts[0].isoformat(), "period_end": ts[-1].isoformat(),
+            "n_rows": int(len(history)), "n_usable": int(usable.sum()),
+            "unusable": usable_counts(processed), "settings": asdict(s)}
+    return ReplayResult(
+        windows=windows, cips=pd.DataFrame(cip_rows, columns=list(CIP_COLUMNS)), initial=initial,
+        dp_clean=dpfit, n_rows=len(history), n_usable=int(usable.sum()),
+        unusable=usable_counts(processed), windows_skipped=skipped, initial_window=iw,
+        run_time_s=time.perf_counter() - t0, settings=s, last_fouling=state.last_fouling, notes=notes,
+        samples=samples, compressors=state.learner.to_dict() if state.learner is not None else None,
+        meta=meta)
+
+
+def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.DataFrame,
+                 init_idx: np.ndarray, s: ReplaySettings, notes: list[str]):
+    """The windows of a replay: (mask, first window of a segment) pairs, the windows skipped per
+    reason, and the CIPs. Operation segments between CIPs (and holes in the record longer than
+    max_gap_minutes) are tiled evenly with windows of about window_hours."""
+    usable = processed["usable"].to_numpy(dtype=bool)
     cip_flag = (pd.to_numeric(history["cip"], errors="coerce").fillna(0).to_numpy() > 0.5
                 if "cip" in history.columns else None)
     cips = detect_cips(ts, processed, cip_flag, s.cip_off_minutes)
@@ -288,79 +359,57 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
             elif m.any():
                 skipped["too few usable samples"] = skipped.get("too few usable samples", 0) + 1
 
-    fouling_spec = spec_from_config(params.extra, "fouling")
-    rows = []
-    previous = None
-    last_fouling = None
-    if progress is not None:
-        progress(0, len(plan))
-    for n_done, (m, new_seg) in enumerate(plan, start=1):
-        if new_seg:
-            previous = None        # the change penalty never reaches across a CIP or a long stop
-        idx = np.flatnonzero(m)
-        row = {"window_start": ts[idx[0]].isoformat(), "window_end": ts[idx[-1]].isoformat(),
-               "n_samples": int(len(idx)), "status": "ok"}
-        data = calibration_frame(history, processed, m)
-        try:
-            fc = calibrate(data, fixed, fouling_spec, previous=previous,
-                           window=(row["window_start"], row["window_end"]))
-            last_fouling = fc
-            if fouling_spec.change_penalty > 0:
-                previous = fc.params
-            adaptive = fc.apply(fixed)
-            row.update(_window_figures(data, fixed, adaptive, fc, s))
-        except (CalibrationError, OptimizationError) as exc:
-            row["status"] = f"failed: {exc}"
-            key = type(exc).__name__
-            skipped[key] = skipped.get(key, 0) + 1
-        rows.append(row)
-        if progress is not None:
-            progress(n_done, len(plan))
-    windows = pd.DataFrame(rows, columns=list(WINDOW_COLUMNS))
-    cip_rows = _cip_table(cips, windows, s.cip_windows)
-    return ReplayResult(
-        windows=windows, cips=pd.DataFrame(cip_rows, columns=list(CIP_COLUMNS)), initial=initial,
-        dp_clean=dpfit, n_rows=len(history), n_usable=int(usable.sum()),
-        unusable=usable_counts(processed), windows_skipped=skipped, initial_window=iw,
-        run_time_s=time.perf_counter() - t0, settings=s, last_fouling=last_fouling, notes=notes)
+    return plan, skipped, cips
 
 
-def _window_figures(data: pd.DataFrame, fixed: PlantParams, adaptive: PlantParams,
-                    fc: CalibrationResult, s: ReplaySettings) -> dict:
-    R = fc.params.get("R_th_f_K_per_kW", adaptive.R_th_f * 1e3)
-    CF = fc.params.get("CF_dp_f", adaptive.CF_dp_f)
-    V = data["V_source"].to_numpy(dtype=float) * M3H
-    out = {
-        "R_th_f_K_per_kW": R, "R_th_f_se_K_per_kW": fc.std_errors.get("R_th_f_K_per_kW", math.nan),
-        "R_th_f_share": evaporator_share(adaptive), "CF_dp_f": CF,
-        "CF_dp_f_se": fc.std_errors.get("CF_dp_f", math.nan),
-        "dp_fouling_bar": float((CF - 1.0) * np.mean(fixed.dp_clean(V)) / BAR),
-        "nrmse_p_e": fc.nrmse.get("p_e", math.nan), "nrmse_dp_source": fc.nrmse.get("dp_source", math.nan),
-        "calibration_warnings": "; ".join(fc.warnings),
-    }
-    cols = ("Q_sink_kW", "W_total_kW", "COP")
-    sim_f = simulate_batch(data, fixed, columns=cols)
-    sim_a = simulate_batch(data, adaptive, columns=cols)
-    both = solved_mask(sim_f) & solved_mask(sim_a)
-    meas_cop = data["COP"].to_numpy(dtype=float)[both]
-    meas_q = data["Q_sink_kW"].to_numpy(dtype=float)[both]
-    out.update({
-        "nrmse_COP_fixed": _nrmse(sim_f["COP"].to_numpy(dtype=float)[both], meas_cop),
-        "nrmse_COP_adaptive": _nrmse(sim_a["COP"].to_numpy(dtype=float)[both], meas_cop),
-        "nrmse_Q_sink_fixed": _nrmse(sim_f["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q),
-        "nrmse_Q_sink_adaptive": _nrmse(sim_a["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q),
-        "COP_measured": float(meas_q.sum() / data["W_total_kW"].to_numpy(dtype=float)[both].sum()),
-        "COP_fixed": float(sim_f["Q_sink_kW"][both].sum() / sim_f["W_total_kW"][both].sum()),
-        "COP_adaptive": float(sim_a["Q_sink_kW"][both].sum() / sim_a["W_total_kW"][both].sum()),
-        "p_m_sp_actual_barg": float(data["p_m_sp"].mean()),
-    })
-    if s.optimize:
-        opt = optimize_setpoint(data, adaptive)
-        out.update({"p_m_sp_opt_barg": opt.p_m_sp_opt_barg, "p_m_opt_bar_a": opt.p_m_opt_bar_a,
-                    "p_m_gm_bar_a": opt.p_m_gm_bar_a, "dCOP_opt_pct": opt.dCOP_opt_pct,
-                    "dQ_sink_opt_pct": opt.dQ_sink_opt_pct, "dCOP_gm_pct": opt.dCOP_gm_pct,
-                    "dQ_sink_gm_pct": opt.dQ_sink_gm_pct, "hs_saturated_opt": opt.hs_saturated})
+def _window_samples(data: pd.DataFrame, res: WindowResult, state: ChainState) -> pd.DataFrame:
+    """Per-sample model series of one window (for samples.csv)."""
+    out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
+    out["window_start"] = res.window_start
+    series = res.detail.get("model_series")
+    if series is not None:
+        for kind in ("fixed", "adaptive"):
+            f = series[kind]
+            out[f"COP_{kind}"] = f["COP"].to_numpy(dtype=float)
+            out[f"Q_sink_kW_{kind}"] = f["Q_sink_kW"].to_numpy(dtype=float)
+        res.detail.pop("model_series")
+    learner = state.learner
+    if learner is not None:
+        obs = observe(data, state.fixed, learner.s)
+        for st in STAGES:
+            pi, n = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+            ok = np.isfinite(pi) & np.isfinite(n)
+            v = np.full(len(obs), np.nan)
+            if ok.any():
+                v[ok] = learner.eta_is(st, pi[ok], n[ok])
+            out[f"eta_is_{st}_model"] = v
     return out
+
+
+def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.DataFrame,
+                 parts: list[pd.DataFrame]) -> pd.DataFrame:
+    num = lambda c: pd.to_numeric(history[c], errors="coerce").to_numpy(dtype=float) \
+        if c in history.columns else np.full(len(history), np.nan)  # noqa: E731
+    out = pd.DataFrame({
+        "timestamp": ts, "usable": processed["usable"].to_numpy(dtype=bool),
+        "reason": processed["reason"].to_numpy(),
+        "COP_measured": processed["COP"].to_numpy(dtype=float),
+        "Q_sink_kW_measured": processed["Q_sink_kW"].to_numpy(dtype=float),
+        "p_e_bar_measured": processed["p_e_bar"].to_numpy(dtype=float),
+        "eta_is_LS_meas": processed["eta_is_LS_meas"].to_numpy(dtype=float),
+        "eta_is_HS_meas": processed["eta_is_HS_meas"].to_numpy(dtype=float),
+        "pi_LS": processed["pi_LS"].to_numpy(dtype=float), "pi_HS": processed["pi_HS"].to_numpy(dtype=float),
+        "N_LS_rpm": num("N_LS"), "N_HS_rpm": num("N_HS"), "p_m_sp_barg": num("p_m_sp"),
+        "heat_balance_pct": processed["heat_balance_pct"].to_numpy(dtype=float)})
+    if parts:
+        w = pd.concat(parts, ignore_index=True)
+        w["timestamp"] = pd.to_datetime(w["timestamp"], utc=True)
+        out = out.merge(w, on="timestamp", how="left")
+    for c in SAMPLE_COLUMNS:
+        if c not in out.columns:
+            out[c] = np.nan
+    out["timestamp"] = out["timestamp"].map(lambda t: t.isoformat())
+    return out[list(SAMPLE_COLUMNS)]
 
 
 def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:
@@ -376,7 +425,7 @@ def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:
         rows.append({
             "cip_start": c["start"].isoformat(), "cip_end": c["end"].isoformat(),
             "duration_h": c["duration_h"], "detected_by": c["detected_by"],
-            "R_th_f_before": Rb, "R_th_f_after": Ra,
+            "R_th_f_before_K_per_kW": Rb, "R_th_f_after_K_per_kW": Ra,
             "R_th_f_removed_pct": 100.0 * (Rb - Ra) / Rb if Rb > 0 else math.nan,
             "CF_dp_f_before": float(before["CF_dp_f"].mean()) if len(before) else math.nan,
             "CF_dp_f_after": float(after["CF_dp_f"].mean()) if len(after) else math.nan})

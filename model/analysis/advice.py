@@ -1,0 +1,233 @@
+"""Set-point advice that knows how sure it is (issue #8 items 5 and 6).
+
+For one window of usable samples and the adaptive model with the learned compressor curves:
+
+1. the COP-optimal p_m,sp by ``model.optimize.search`` on a few representative operating points of
+   the window (``representative_points``), restricted to the set points whose predicted compressor
+   operating points (pi, n) of both stages lie within the region the learned curves cover plus the
+   stated margin (``CompressorLearner.coverage_distance`` <= 1): the learned curves are not
+   extrapolated further;
+2. a dead band: the previous recommendation is kept unless the new optimum is worth more than
+   ``dead_band_pct`` of COP over it in this window's conditions (an operator is not asked to chase
+   noise);
+3. the expected COP and heat-output change against the window's actual set point, on the whole
+   window (every sample simulated at both set points; the LS speed limit as a branch, so lost LS
+   capacity shows as lost heat);
+4. its uncertainty: the standard deviation of the COP change over ``uncertainty_draws`` draws of the
+   learned curve coefficients (and of R_th,f) from their covariance, evaluated on the representative
+   points;
+5. confidence. The advice is *low-confidence* (the block's status bit; the recommendation is then the
+   current set point) when the curves are not learned yet, when fewer than ``min_coverage_share`` of the
+   window's samples lie in the region the curves had covered before this window, when the learned
+   curve misses this window's measured eta_is by more than ``max_curve_residual`` on average, or when
+   the expected gain is not larger than ``confidence_k`` standard deviations — unless both the gain
+   and its uncertainty are below the dead band ("keep the set point" is then a confident answer: the
+   model is sure that moving is not worth it).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+import pandas as pd
+
+from ..batch import INPUT_COLUMNS
+from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, representative, search,
+                        window_range)
+from ..params import PlantParams
+from .compressors import STAGES, CompressorLearner, _to_poly
+
+
+class AdviceError(ValueError):
+    """Settings are invalid; the message names the key."""
+
+
+@dataclass(frozen=True)
+class AdviceSettings:
+    """plant.yaml ``advice`` (every key optional; these are the defaults)."""
+    representative_points: int = 8      # operating points the search evaluates per window
+    uncertainty_draws: int = 12         # curve draws for the uncertainty of the expected gain
+    confidence_k: float = 1.0           # the gain must exceed k standard deviations
+    min_coverage_share: float = 0.8     # of the window's samples inside the learned region
+    max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
+    dead_band_pct: float = 0.05         # move the recommendation only for more COP than this [%]
+    seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "AdviceSettings":
+        d = dict(d or {})
+        known = {f.name: f for f in fields(cls)}
+        kw = {}
+        for k, v in d.items():
+            if k not in known:
+                raise AdviceError(f"key 'advice.{k}': unknown (known: {', '.join(known)})")
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+            if not ok:
+                raise AdviceError(f"key 'advice.{k}': expected a number >= 0, got {v!r}")
+            kw[k] = int(v) if isinstance(known[k].default, int) else float(v)
+        s = cls(**kw)
+        if s.representative_points < 1:
+            raise AdviceError("key 'advice.representative_points': must be >= 1")
+        return s
+
+
+@dataclass
+class AdviceResult:
+    """The advice of one window (set points in bar(g), changes in %)."""
+    p_m_sp_rec_barg: float           # the recommendation as written to the block
+    confident: bool
+    note: str                        # why not confident (or what was decided), plain words
+    p_m_sp_actual_barg: float
+    p_m_sp_model_opt_barg: float     # the optimum within the trusted region, before the dead band
+    p_m_opt_barg: float              # intermediate pressure at the recommendation (window mean)
+    p_m_gm_barg: float               # geometric mean sqrt(p_e p_c) (window means)
+    dCOP_pct: float                  # at the recommendation vs the actual set point (whole window)
+    dCOP_sd_pct: float
+    dQ_sink_pct: float
+    dCOP_model_opt_pct: float        # at the model optimum vs actual (what following it would give)
+    dQ_sink_model_opt_pct: float
+    dCOP_gm_pct: float               # recommendation vs the geometric mean
+    dQ_sink_gm_pct: float
+    COP_actual_model: float
+    hs_saturated: bool
+    coverage_share: float            # window samples inside the region covered before the window
+    curve_residual: dict             # stage -> mean(eta_meas - curve)
+    n_samples: int
+    n_eval_rows: int
+    evaluations: int
+
+
+def _feasible(learner: CompressorLearner | None, params: PlantParams):
+    """Candidate filter: every evaluated row's (pi, n) per stage within the covered region + margin
+    (only for curves already learned; the prior is used elsewhere anyway)."""
+    if learner is None:
+        return None
+    stages = [st for st in STAGES if learner.learned(st, "eta_is")]
+    if not stages:
+        return None
+    N_nom = {"LS": params.comp_LS.N_nom, "HS": params.comp_HS.N_nom}
+
+    def ok(p: Point) -> bool:
+        f = p.frame
+        if not np.isin(f["status"].to_numpy(), SOLVED).all():
+            return False
+        p_e, p_m, p_c = (f[c].to_numpy(dtype=float) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
+        for st in stages:
+            pi = p_m / p_e if st == "LS" else p_c / p_m
+            n = f[f"N_{st}_rpm"].to_numpy(dtype=float) / N_nom[st]
+            if not (learner.coverage_distance(st, pi, n) <= 1.0).all():
+                return False
+        return True
+    return ok
+
+
+def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> PlantParams:
+    kw = {}
+    for st in STAGES:
+        comp = params.comp_LS if st == "LS" else params.comp_HS
+        d = {c: tuple(_to_poly(a)) for c, a in draw.get(st, {}).items()}
+        if d:
+            kw[f"comp_{st}"] = comp.replace(**d)
+    return params.replace(**kw)
+
+
+def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
+           settings: AdviceSettings, previous_rec_barg: float | None = None,
+           coverage_share: float = 1.0, curve_residual: dict | None = None,
+           R_th_f_se_K_per_kW: float = 0.0) -> AdviceResult:
+    """The advice for the window ``data`` (canonical inputs) on the adaptive model ``adaptive``
+    (learned curves applied). ``coverage_share`` and ``curve_residual`` come from the chain (they
+    need the measured side); raises OptimizationError when nothing can be optimised."""
+    s = settings
+    amb = adaptive.ambient_pressure / 1e5
+    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    full = Evaluator(data, np.ones(len(data)), adaptive)
+    ref = full.at(None)
+    ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
+    if not ok.any():
+        raise OptimizationError("the model solves none of the window's samples at their actual set points")
+    if not ok.all():
+        data = data.loc[ok].reset_index(drop=True)
+        full = Evaluator(data, np.ones(len(data)), adaptive)
+        ref = full.at(None)
+    lo, hi = window_range(ref.frame, amb)
+    rows, w = representative(data, s.representative_points)
+    ev = Evaluator(rows, w, adaptive)
+    feasible = _feasible(learner, adaptive)
+    actual = float(data["p_m_sp"].mean())
+    sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
+    # dead band against the previous recommendation (if it is still a valid candidate here)
+    sp_rec, note = sp_opt, ""
+    if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
+        p_prev = ev.at(previous_rec_barg)
+        if p_prev.ok and (feasible is None or feasible(p_prev)):
+            gain = 100.0 * (ev.at(sp_opt).COP / p_prev.COP - 1.0)
+            if gain < s.dead_band_pct:
+                sp_rec = previous_rec_barg
+                note = f"kept the previous recommendation (the optimum gains {gain:.3f} % more)"
+    rec = full.at(sp_rec)
+    opt = rec if sp_rec == sp_opt else full.at(sp_opt)
+    if not (rec.ok and opt.ok):
+        raise OptimizationError("the recommended set point does not solve every sample of the window")
+    dcop = 100.0 * (rec.COP / ref.COP - 1.0)
+    dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
+    # uncertainty of the expected gain: draws of the learned curves (and of R_th,f)
+    sd = math.nan
+    if learner is not None and s.uncertainty_draws >= 2:
+        rng = np.random.default_rng(s.seed)
+        draws = learner.draws(int(s.uncertainty_draws), rng)
+        vals = []
+        for d in draws:
+            par = _with_draw(adaptive, learner, d)
+            if R_th_f_se_K_per_kW and math.isfinite(R_th_f_se_K_per_kW):
+                par = par.replace(R_th_f=max(0.0, par.R_th_f + 1e-3 * R_th_f_se_K_per_kW
+                                             * float(rng.standard_normal())))
+            e = Evaluator(rows, w, par)
+            a, b = e.at(sp_rec), e.at(None)
+            if a.ok and b.ok:
+                vals.append(100.0 * (a.COP / b.COP - 1.0))
+        if len(vals) >= 2:
+            sd = float(np.std(vals, ddof=1))
+    p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
+    p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
+    gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
+    gm_p = full.at(min(max(gm - amb, lo), hi))
+    # confidence
+    resid = curve_residual or {}
+    reasons = []
+    if learner is None or not all(learner.learned(st, "eta_is") for st in STAGES):
+        reasons.append("compressor curves not learned yet from enough operating data")
+    if coverage_share < s.min_coverage_share:
+        reasons.append(f"operating point outside the region the learned curves cover "
+                       f"({100 * coverage_share:.0f} % of the samples inside)")
+    for st, r in resid.items():
+        if math.isfinite(r) and abs(r) > s.max_curve_residual:
+            reasons.append(f"the learned {st} curve misses this window's measured eta_is by {r:+.3f}")
+    sd_eff = sd if math.isfinite(sd) else math.inf
+    if not reasons and not dcop > s.confidence_k * sd_eff:
+        if abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct:
+            note = note or "at the optimum: moving the set point is not worth it"
+        else:
+            reasons.append(f"expected gain {dcop:+.2f} % is not larger than its uncertainty "
+                           f"({s.confidence_k:g} x {sd:.2f} %)")
+    confident = not reasons
+    if not confident:
+        note = "; ".join(reasons)
+    elif abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct and sp_rec != actual:
+        # a confident "keep": the recommendation is the current set point
+        sp_rec, rec, dcop, dq = actual, ref, 0.0, 0.0
+    if not confident:
+        sp_rec, dcop, dq, rec = actual, 0.0, 0.0, ref
+    return AdviceResult(
+        p_m_sp_rec_barg=float(sp_rec), confident=confident, note=note,
+        p_m_sp_actual_barg=actual, p_m_sp_model_opt_barg=float(sp_opt),
+        p_m_opt_barg=float(rec.frame["p_m_bar"].mean()) - amb, p_m_gm_barg=gm - amb,
+        dCOP_pct=dcop, dCOP_sd_pct=sd, dQ_sink_pct=dq,
+        dCOP_model_opt_pct=100.0 * (opt.COP / ref.COP - 1.0),
+        dQ_sink_model_opt_pct=100.0 * (opt.Q_sink_kW / ref.Q_sink_kW - 1.0),
+        dCOP_gm_pct=100.0 * (rec.COP / gm_p.COP - 1.0) if gm_p.ok else math.nan,
+        dQ_sink_gm_pct=100.0 * (rec.Q_sink_kW / gm_p.Q_sink_kW - 1.0) if gm_p.ok else math.nan,
+        COP_actual_model=ref.COP, hs_saturated=bool(p_opt.hs_saturated) and sp_rec == sp_opt,
+        coverage_share=float(coverage_share), curve_residual=dict(resid), n_samples=len(data),
+        n_eval_rows=len(rows), evaluations=ev.evals + full.evals)

@@ -1,0 +1,367 @@
+"""One analysis chain, called by both the gateway and replay (issue #8 item 1; pvlib's ModelChain).
+
+``AnalysisChain.window(data, state) -> WindowResult`` does, for one window of usable one-minute
+samples (canonical columns of SPEC §4, time on a ``timestamp`` column or a DatetimeIndex):
+
+1. the measured side (``model.measured.derived``) and the window's heat-balance closure: a closure
+   worse than ``heat_balance_limit_pct`` (after the learned drive factors) marks the window unusable
+   for calibration, with the reason (a flow meter drifting is the usual cause);
+2. compressor learning (``model.analysis.compressors``): the window's observations not seen before
+   are added to the learned curves (causal: nothing after the window's end is used);
+3. the fouling calibration (R_th,f, CF_dp,f) of the fixed model -> the adaptive model;
+4. the papers' window figures: NRMSE of COP and heat output of the fixed and the adaptive model;
+5. the set-point advice with its uncertainty and confidence (``model.analysis.advice``);
+6. the compressor drift against commissioning.
+
+``ChainState`` carries what one window hands to the next (the fixed model, the learner, the
+previous fouling parameters and recommendation); the gateway persists it in its state directory,
+replay keeps it in memory. The result's ``row()`` is a windows.csv row (units in the column names)
+and ``advisory_values()`` the advisory block's fields in the HMI's units — one mapping each, here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from ..batch import INPUT_COLUMNS, simulate_batch, solved_mask
+from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
+                           apply_state, calibrate, evaporator_share)
+from ..measured import derived
+from ..optimize import OptimizationError
+from ..params import PlantParams
+from ..units import BAR, M3H
+from .advice import AdviceResult, AdviceSettings, advise
+from .compressors import STAGES, CompressorLearner, LearningSettings, observe
+
+DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
+
+
+@dataclass(frozen=True)
+class ChainSettings:
+    min_samples: int = 30                       # usable samples a window needs
+    heat_balance_limit_pct: float = DEFAULT_HEAT_BALANCE_LIMIT_PCT
+    optimize: bool = True
+    learn_compressors: bool = True
+    advice: AdviceSettings = AdviceSettings()
+    learning: LearningSettings = LearningSettings()
+
+    @classmethod
+    def from_config(cls, extra: dict | None, **overrides) -> "ChainSettings":
+        """plant.yaml's ``advice``, ``compressor_learning`` and ``calibration`` sections."""
+        extra = extra or {}
+        learning = LearningSettings.from_dict(extra.get("compressor_learning"))
+        kw = dict(advice=AdviceSettings.from_dict(extra.get("advice")), learning=learning,
+                  learn_compressors=learning.enabled)
+        hb = (extra.get("calibration") or {}).get("heat_balance_limit_pct")
+        if hb is not None:
+            if isinstance(hb, bool) or not isinstance(hb, (int, float)) or not hb > 0:
+                raise CalibrationError(f"key 'calibration.heat_balance_limit_pct': expected a number "
+                                       f"> 0, got {hb!r}")
+            kw["heat_balance_limit_pct"] = float(hb)
+        kw.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**kw)
+
+
+@dataclass
+class ChainState:
+    """What one window hands to the next."""
+    fixed: PlantParams                          # plant.yaml + initial calibration + dp_clean fit
+    learner: CompressorLearner | None = None
+    fouling_previous: dict | None = None        # previous fouling parameters (change penalty)
+    last_rec_barg: float | None = None          # previous confident recommendation (dead band)
+    last_fouling: CalibrationResult | None = None
+
+
+@dataclass
+class WindowResult:
+    """Everything one window produced. Floats are NaN when not available."""
+    window_start: str
+    window_end: str
+    t_end: float                                # epoch s of the last sample
+    n_samples: int
+    status: str = "ok"                          # "ok" | "skipped: ..." | "failed: ..."
+    heat_balance_pct: float = math.nan
+    R_th_f_K_per_kW: float = math.nan
+    R_th_f_se_K_per_kW: float = math.nan
+    R_th_f_share_pct: float = math.nan
+    CF_dp_f: float = math.nan
+    CF_dp_f_se: float = math.nan
+    dp_fouling_bar: float = math.nan
+    nrmse_p_e: float = math.nan                 # fractions (the papers' NRMSE)
+    nrmse_dp_source: float = math.nan
+    calibration_objective: float = math.nan
+    calibration_warnings: str = ""
+    nrmse_COP_fixed: float = math.nan
+    nrmse_COP_adaptive: float = math.nan
+    nrmse_Q_sink_fixed: float = math.nan
+    nrmse_Q_sink_adaptive: float = math.nan
+    COP_measured: float = math.nan
+    COP_fixed: float = math.nan
+    COP_adaptive: float = math.nan
+    p_m_sp_actual_barg: float = math.nan
+    p_m_sp_opt_barg: float = math.nan           # the recommendation as written to the block
+    p_m_sp_model_opt_barg: float = math.nan     # the model optimum (trusted region, no dead band)
+    p_m_opt_barg: float = math.nan
+    p_m_gm_barg: float = math.nan
+    dCOP_opt_pct: float = math.nan
+    dCOP_opt_sd_pct: float = math.nan
+    dQ_sink_opt_pct: float = math.nan
+    dCOP_model_opt_pct: float = math.nan
+    dQ_sink_model_opt_pct: float = math.nan
+    dCOP_gm_pct: float = math.nan
+    dQ_sink_gm_pct: float = math.nan
+    hs_saturated_opt: bool = False
+    advice_confident: bool = False
+    advice_note: str = ""
+    optimization_ok: bool = False
+    calibration_ok: bool = False
+    coverage_share: float = math.nan
+    eta_is_LS_resid: float = math.nan
+    eta_is_HS_resid: float = math.nan
+    eta_is_LS_drift_pct: float = math.nan
+    eta_is_HS_drift_pct: float = math.nan
+    drive_factor_LS: float = math.nan
+    drive_factor_HS: float = math.nan
+    T_c_location: str = ""
+    detail: dict = field(default_factory=dict)  # calibration document etc. (not a CSV column)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def row(self) -> dict:
+        """A windows.csv row: units in the names (%, bar(g), K/kW), nrmse_* as fractions."""
+        d = asdict(self)
+        d.pop("detail")
+        return d
+
+    def advisory_values(self) -> dict:
+        """Advisory block field name -> value in the block's unit (see config/gateway.yaml)."""
+        v = {
+            "R_th_f": self.R_th_f_K_per_kW, "R_th_f_share": self.R_th_f_share_pct,
+            "CF_dp_f": self.CF_dp_f, "dp_fouling": self.dp_fouling_bar,
+            "nrmse_pct": 100.0 * self.calibration_objective,
+            "COP_measured": self.COP_measured, "COP_adaptive": self.COP_adaptive,
+            "COP_fixed": self.COP_fixed,
+        }
+        if self.optimization_ok:
+            v.update({"p_m_sp_rec": self.p_m_sp_opt_barg, "dCOP_pct": self.dCOP_opt_pct,
+                      "dQ_sink_pct": self.dQ_sink_opt_pct, "p_m_gm": self.p_m_gm_barg,
+                      "dCOP_sd_pct": self.dCOP_opt_sd_pct})
+        v.update({"eta_is_LS_drift": self.eta_is_LS_drift_pct,
+                  "eta_is_HS_drift": self.eta_is_HS_drift_pct})
+        return {k: float(x) for k, x in v.items() if x is not None}
+
+
+ROW_COLUMNS = tuple(k for k in WindowResult.__dataclass_fields__ if k != "detail")
+
+
+def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
+    ok = np.isfinite(sim) & np.isfinite(meas)
+    if ok.sum() == 0 or not np.mean(meas[ok]) > 0:
+        return math.nan
+    return float(np.sqrt(np.mean((sim[ok] - meas[ok]) ** 2)) / np.mean(meas[ok]))
+
+
+def _ratio(num, den) -> float:
+    n = np.asarray(num, dtype=float)
+    d = np.asarray(den, dtype=float)
+    ok = np.isfinite(n) & np.isfinite(d)
+    s = d[ok].sum()
+    return float(n[ok].sum() / s) if s > 0 else math.nan
+
+
+def _times(data: pd.DataFrame) -> pd.DatetimeIndex:
+    if "timestamp" in data.columns:
+        return pd.DatetimeIndex(pd.to_datetime(data["timestamp"], utc=True))
+    if isinstance(data.index, pd.DatetimeIndex):
+        return data.index.tz_localize("UTC") if data.index.tz is None else data.index
+    raise ValueError("window data needs a 'timestamp' column or a DatetimeIndex")
+
+
+class AnalysisChain:
+    """The analysis of SPEC §4-6 and §9 for one plant.
+
+    plant : plant.yaml's parameters (data sheet, prior compressor curves)
+    fouling_spec : the fouling calibration (``model.calibration.spec_from_config(extra, "fouling")``)
+    settings : ChainSettings (plant.yaml ``advice``, ``compressor_learning``)
+    """
+
+    def __init__(self, plant: PlantParams, fouling_spec: CalibrationSpec,
+                 settings: ChainSettings | None = None) -> None:
+        self.plant = plant
+        self.spec = fouling_spec
+        self.s = settings or ChainSettings()
+
+    # ---------------------------------------------------------------------------- state
+    def fixed_model(self, initial: dict | None, dp_clean: dict | None) -> PlantParams:
+        """plant.yaml + the initial calibration and the clean pressure-drop fit, no fouling."""
+        return apply_state(self.plant, initial, dp_clean).replace(R_th_f=0.0, CF_dp_f=1.0)
+
+    def new_state(self, initial: dict | None, dp_clean: dict | None,
+                  learner: CompressorLearner | None = None) -> ChainState:
+        fixed = self.fixed_model(initial, dp_clean)
+        if learner is None and self.s.learn_compressors:
+            learner = CompressorLearner(fixed, self.s.learning)
+        return ChainState(fixed=fixed, learner=learner)
+
+    def commission(self, state: ChainState, data: pd.DataFrame) -> None:
+        """Learn from the commissioning window and keep the curves as the drift reference."""
+        if state.learner is None:
+            return
+        obs = observe(data, state.fixed, self.s.learning)
+        state.learner.update(obs)
+        state.learner.freeze_commissioning()
+
+    def new_segment(self, state: ChainState) -> None:
+        """After a CIP or a long stop: the change penalty does not reach across it."""
+        state.fouling_previous = None
+
+    # ---------------------------------------------------------------------------- window
+    def window(self, data: pd.DataFrame, state: ChainState) -> WindowResult:
+        """Analyse one window of usable samples; updates ``state`` (learner, previous values)."""
+        ts = _times(data)
+        data = data.reset_index(drop=True)
+        n = len(data)
+        res = WindowResult(window_start=ts[0].isoformat() if n else "",
+                           window_end=ts[-1].isoformat() if n else "",
+                           t_end=float(ts[-1].timestamp()) if n else math.nan, n_samples=n)
+        if n < self.s.min_samples:
+            res.status = f"skipped: {n} usable samples, {self.s.min_samples} needed"
+            return res
+        fixed = state.fixed
+        der = derived(data, fixed)
+        for c in INPUT_COLUMNS:
+            der[c] = pd.to_numeric(data[c], errors="coerce").to_numpy(dtype=float)
+        res.p_m_sp_actual_barg = float(der["p_m_sp"].mean())
+        learner = state.learner
+        # ---- compressors: observations, coverage before this window, then learn from it
+        obs = None
+        if learner is not None:
+            obs = observe(data.assign(timestamp=ts), fixed, self.s.learning)
+            cov = []
+            for st in STAGES:
+                pi, nn = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+                ok = np.isfinite(pi) & np.isfinite(nn)
+                d = learner.coverage_distance(st, pi[ok], nn[ok]) if ok.any() else np.array([np.inf])
+                cov.append(float(np.mean(d <= 1.0)))
+            res.coverage_share = min(cov)
+            t_last = learner.t_last
+            new = obs if t_last is None else obs[obs["t"].to_numpy(dtype=float) > t_last]
+            if len(new):
+                learner.update(new)
+            res.drive_factor_LS = learner.drive_factor("LS")
+            res.drive_factor_HS = learner.drive_factor("HS")
+            res.T_c_location = learner.T_c_location()
+        base = learner.apply(fixed) if learner is not None else fixed
+        # ---- heat balance of the window (shaft power: the electric power over the drive factor)
+        W_shaft = (pd.to_numeric(data["W_LS"], errors="coerce") / base.comp_LS.drive_factor
+                   + pd.to_numeric(data["W_HS"], errors="coerce") / base.comp_HS.drive_factor)
+        closure = 100.0 * (der["Q_sink_kW"] - der["Q_source_kW"] - W_shaft.to_numpy()) / der["Q_sink_kW"]
+        res.heat_balance_pct = float(np.nanmedian(closure))
+        if not abs(res.heat_balance_pct) <= self.s.heat_balance_limit_pct:
+            res.status = (f"failed: measured heat balance does not close ({res.heat_balance_pct:+.1f} % "
+                          f"of the heat output, limit {self.s.heat_balance_limit_pct:g} %): check the "
+                          f"water flow meters and temperatures")
+            return res
+        # ---- fouling calibration
+        cal = der[list(INPUT_COLUMNS) + sorted({m for m, _ in TARGETS.values()} & set(der.columns))]
+        try:
+            fc = calibrate(cal, base, self.spec, previous=state.fouling_previous,
+                           window=(res.window_start, res.window_end))
+        except (CalibrationError, ValueError, ArithmeticError) as exc:
+            res.status = f"failed: fouling calibration: {exc}"
+            return res
+        if not fc.success or not all(math.isfinite(v) for v in fc.params.values()):
+            res.status = f"failed: fouling calibration: {fc.message}"
+            res.detail["calibration"] = fc.to_dict()
+            return res
+        res.calibration_ok = True
+        state.last_fouling = fc
+        if self.spec.change_penalty > 0:
+            state.fouling_previous = fc.params
+        adaptive = fc.apply(base)
+        res.detail["calibration"] = fc.to_dict()
+        self._fouling_figures(res, fc, fixed, adaptive, der)
+        self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive)
+        # ---- compressor residuals and drift at this window's operating point
+        if learner is not None and obs is not None:
+            for st in STAGES:
+                pi, nn = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+                e = obs[f"eta_is_{st}"].to_numpy()
+                ok = np.isfinite(pi) & np.isfinite(nn) & np.isfinite(e)
+                if ok.sum() >= 5:
+                    curve = learner.eta_is(st, pi[ok], nn[ok])
+                    setattr(res, f"eta_is_{st}_resid", float(np.mean(e[ok] - curve)))
+                    setattr(res, f"eta_is_{st}_drift_pct",
+                            learner.drift_pct(st, float(np.median(pi[ok])), float(np.median(nn[ok]))))
+        # ---- advice
+        if self.s.optimize:
+            try:
+                adv = advise(der, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
+                             coverage_share=res.coverage_share if learner is not None else 1.0,
+                             curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
+                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW)
+            except (OptimizationError, ValueError, ArithmeticError) as exc:
+                res.status = f"failed: set-point optimization: {exc}"
+                return res
+            self._advice_figures(res, adv)
+            if adv.confident:
+                state.last_rec_barg = adv.p_m_sp_rec_barg
+        return res
+
+    def _fouling_figures(self, res: WindowResult, fc: CalibrationResult, fixed: PlantParams,
+                         adaptive: PlantParams, der: pd.DataFrame) -> None:
+        R = fc.params.get("R_th_f_K_per_kW", adaptive.R_th_f * 1e3)
+        CF = fc.params.get("CF_dp_f", adaptive.CF_dp_f)
+        V = der["V_source"].to_numpy(dtype=float) * M3H
+        res.R_th_f_K_per_kW = float(R)
+        res.R_th_f_se_K_per_kW = float(fc.std_errors.get("R_th_f_K_per_kW", math.nan))
+        res.R_th_f_share_pct = 100.0 * evaporator_share(adaptive)
+        res.CF_dp_f = float(CF)
+        res.CF_dp_f_se = float(fc.std_errors.get("CF_dp_f", math.nan))
+        res.dp_fouling_bar = float((CF - 1.0) * np.mean(fixed.dp_clean(V)) / BAR)
+        res.nrmse_p_e = fc.nrmse.get("p_e", math.nan)
+        res.nrmse_dp_source = fc.nrmse.get("dp_source", math.nan)
+        res.calibration_objective = float(fc.objective)
+        res.calibration_warnings = "; ".join(fc.warnings)
+
+    def _model_figures(self, res: WindowResult, der: pd.DataFrame, fixed: PlantParams,
+                       adaptive: PlantParams) -> None:
+        cols = ("Q_sink_kW", "W_total_kW", "COP")
+        inputs = der[list(INPUT_COLUMNS)]
+        sim_f = simulate_batch(inputs, fixed, columns=cols)
+        sim_a = simulate_batch(inputs, adaptive, columns=cols)
+        both = solved_mask(sim_f) & solved_mask(sim_a)
+        meas_cop = der["COP"].to_numpy(dtype=float)[both]
+        meas_q = der["Q_sink_kW"].to_numpy(dtype=float)[both]
+        res.nrmse_COP_fixed = _nrmse(sim_f["COP"].to_numpy(dtype=float)[both], meas_cop)
+        res.nrmse_COP_adaptive = _nrmse(sim_a["COP"].to_numpy(dtype=float)[both], meas_cop)
+        res.nrmse_Q_sink_fixed = _nrmse(sim_f["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
+        res.nrmse_Q_sink_adaptive = _nrmse(sim_a["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
+        res.COP_measured = _ratio(der["Q_sink_kW"], der["W_total_kW"])
+        res.COP_fixed = _ratio(sim_f["Q_sink_kW"][both], sim_f["W_total_kW"][both])
+        res.COP_adaptive = _ratio(sim_a["Q_sink_kW"][both], sim_a["W_total_kW"][both])
+        res.detail["model_series"] = {"fixed": sim_f, "adaptive": sim_a}
+
+    @staticmethod
+    def _advice_figures(res: WindowResult, adv: AdviceResult) -> None:
+        res.optimization_ok = True
+        res.p_m_sp_opt_barg = adv.p_m_sp_rec_barg
+        res.p_m_sp_model_opt_barg = adv.p_m_sp_model_opt_barg
+        res.p_m_opt_barg = adv.p_m_opt_barg
+        res.p_m_gm_barg = adv.p_m_gm_barg
+        res.dCOP_opt_pct = adv.dCOP_pct
+        res.dCOP_opt_sd_pct = adv.dCOP_sd_pct
+        res.dQ_sink_opt_pct = adv.dQ_sink_pct
+        res.dCOP_model_opt_pct = adv.dCOP_model_opt_pct
+        res.dQ_sink_model_opt_pct = adv.dQ_sink_model_opt_pct
+        res.dCOP_gm_pct = adv.dCOP_gm_pct
+        res.dQ_sink_gm_pct = adv.dQ_sink_gm_pct
+        res.hs_saturated_opt = adv.hs_saturated
+        res.advice_confident = adv.confident
+        res.advice_note = adv.note
+        res.detail["advice"] = {k: v for k, v in asdict(adv).items()}

@@ -1,0 +1,657 @@
+"""Compressor curves learned from the plant's own operating data (SPEC §9, issue #8 item 2).
+
+The optimum p_m,sp depends on the compressors' isentropic and volumetric efficiencies more than on
+anything else, and a plant's curves are not the data sheet's. The plant measures what is needed to
+learn them, every minute:
+
+- eta_is per stage from suction and discharge (p, T) (adiabatic compressors, as in the model);
+- m_LS from the evaporator duty, Q_source / (h_suc,LS - h_f(p_m)); m_HS from the open intercooler,
+  m_LS (h_dis,LS - h_f(p_m)) / (h_g(p_m) - h_SC,out), where the liquid entering the HS valve is
+  measured when T_c is the subcooler outlet, and otherwise modelled with the SC's eps-NTU (T_c then
+  is the saturated condensate; which of the two a plant has is told from T_sat(p_c) - T_c or set);
+- eta_vol = m / (rho_suc * V_s * N/N_nom) where the speeds are measured (optional tags);
+- the drive and heat-loss factor W_el / (m * (h_dis - h_suc)) per stage, used for the power
+  prediction; m_HS from W_HS / (h_dis - h_suc) is the cross-check of the intercooler balance.
+
+Each curve is fitted on plant.yaml's polynomial form (``model.params.POLY_BASIS`` in pi and
+n = N/N_nom) by weighted least squares on sufficient statistics that forget old data exponentially
+(``half_life_days``: wear shows, and the state stays small), regularised toward the configured curve
+(the manufacturer's prior) by pseudo-observations of the prior spread over the whole operating range
+with a total weight of ``prior_weight`` samples: where the data is thick it wins, where it is thin the
+prior holds the curve. The (pi, n) region the data covers is kept as a decaying 2-D histogram; the
+optimizer may extrapolate only ``margin_pi``/``margin_n`` beyond the hull of its covered bins.
+Coefficient covariances (residual variance, inflated for the residuals' serial correlation) give the
+advice its uncertainty.
+
+Units: SI inside (Pa, K, J/kg, kg/s, W); observation frames carry names with units.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+import pandas as pd
+
+from ..components import subcooler
+from ..fluid import Fluid, PropertyError, get_fluid
+from ..params import POLY_BASIS, Compressor, PlantParams
+from ..units import BAR, C_to_K, m3h_to_m3s
+
+STAGES = ("LS", "HS")
+CURVES = ("eta_is", "eta_vol")
+T_C_LOCATIONS = ("auto", "condenser_outlet", "subcooler_outlet")
+DAY_S = 86400.0
+_Z = (2.5, 1.0, 1.0, 0.3)        # internal scaling: z_pi = (pi - 2.5)/1.0, z_n = (n - 1)/0.3
+
+
+class LearningError(ValueError):
+    """Settings or a state document are invalid; the message names the key."""
+
+
+@dataclass(frozen=True)
+class LearningSettings:
+    """plant.yaml ``compressor_learning`` (every key optional; these are the defaults)."""
+    enabled: bool = True
+    half_life_days: float = 60.0      # weight of a sample halves every this many days of plant time
+    prior_weight: float = 240.0       # the prior curve counts as this many samples over its grid
+    min_samples: float = 120.0        # effective samples a curve needs before it replaces the prior
+    bin_pi: float = 0.05              # coverage histogram bin widths
+    bin_n: float = 0.04
+    min_bin_weight: float = 5.0       # effective samples that make a bin "covered"
+    margin_pi: float = 0.10           # extrapolation allowed beyond the covered hull
+    margin_n: float = 0.06
+    T_c_location: str = "auto"        # auto | condenser_outlet | subcooler_outlet
+    subcooling_threshold_K: float = 1.5   # auto: T_sat(p_c) - T_c above this -> subcooler outlet
+    eta_range: tuple = (0.3, 1.0)     # observations outside are sensor trouble, not compressor data
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "LearningSettings":
+        d = dict(d or {})
+        known = {f.name: f for f in fields(cls)}
+        kw = {}
+        for k, v in d.items():
+            if k not in known:
+                raise LearningError(f"key 'compressor_learning.{k}': unknown (known: "
+                                    f"{', '.join(known)})")
+            default = known[k].default
+            if isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise LearningError(f"key 'compressor_learning.{k}': expected true/false, got {v!r}")
+            elif isinstance(default, str):
+                if v not in T_C_LOCATIONS:
+                    raise LearningError(f"key 'compressor_learning.{k}': {v!r} is not one of "
+                                        f"{', '.join(T_C_LOCATIONS)}")
+            elif isinstance(default, tuple):
+                if not (isinstance(v, (list, tuple)) and len(v) == 2 and v[0] < v[1]):
+                    raise LearningError(f"key 'compressor_learning.{k}': expected [low, high]")
+                v = (float(v[0]), float(v[1]))
+            else:
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                    raise LearningError(f"key 'compressor_learning.{k}': expected a number > 0, "
+                                        f"got {v!r}")
+                v = float(v)
+            kw[k] = v
+        return cls(**kw)
+
+
+# --------------------------------------------------------------------------------------------------
+# observations
+# --------------------------------------------------------------------------------------------------
+OBS_COLUMNS = ("t", "pi_LS", "n_LS", "eta_is_LS", "eta_vol_LS", "drive_LS", "m_LS_kg_s",
+               "pi_HS", "n_HS", "eta_is_HS", "eta_vol_HS", "drive_HS", "m_HS_kg_s", "m_HS_W_kg_s",
+               "subcooling_meas_K")
+
+
+def stage_states(fl: Fluid, p_suc: float, T_suc: float, p_dis: float, T_dis: float,
+                 warm: dict | None = None, key: str = ""):
+    """(h_suc, rho_suc, h_dis, h_is) [J/kg, kg/m^3] of a compressor from measured suction and
+    discharge (p [Pa], T [K]); a suction reading at or below saturation (sensor noise) is taken as
+    saturated vapour. Raises PropertyError; returns None where the discharge is not superheated.
+    ``warm`` (a dict the caller keeps between rows) warm-starts the isentropic state per ``key``."""
+    sat = fl.sat_p(p_suc)
+    if T_suc <= sat.T + 0.05:
+        h_suc, s_suc, rho_suc = sat.h_g, sat.s_g, sat.rho_g
+    else:
+        h_suc, s_suc, rho_suc = fl.vapour_pT(p_suc, T_suc)
+    if not (p_dis > p_suc and T_dis > fl.sat_p(p_dis).T + 0.5):
+        return None
+    h_dis, _, _ = fl.vapour_pT(p_dis, T_dis)
+    g = warm.get(key) if warm is not None else None
+    h_is, T_is, rho_is = fl.isentropic(p_dis, s_suc, g)
+    if warm is not None and math.isfinite(rho_is):
+        warm[key] = (rho_is, T_is)
+    return h_suc, rho_suc, h_dis, h_is
+
+
+def eta_is_measured(fl: Fluid, p_suc: float, T_suc: float, p_dis: float, T_dis: float,
+                    warm: dict | None = None, key: str = "") -> float:
+    """Measured isentropic efficiency (h_is - h_suc) / (h_dis - h_suc) [-]; NaN when undefined."""
+    if not all(math.isfinite(x) for x in (p_suc, T_suc, p_dis, T_dis)) or p_dis <= p_suc:
+        return math.nan
+    st = stage_states(fl, p_suc, T_suc, p_dis, T_dis, warm, key)
+    if st is None or st[2] - st[0] <= 0:
+        return math.nan
+    return (st[3] - st[0]) / (st[2] - st[0])
+
+
+def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings | None = None,
+            T_c_location: str | None = None) -> pd.DataFrame:
+    """Per sample of ``data`` (canonical columns of SPEC §4, degC, bar(g), m3/h, kW, rpm; only usable
+    samples should be passed): the compressor observations OBS_COLUMNS (NaN where undefined).
+
+    ``t`` is the sample time [epoch s] from a ``timestamp`` column or a DatetimeIndex (NaN without).
+    T_c_location: 'condenser_outlet' or 'subcooler_outlet' (default: the settings', 'auto' decided
+    per call from the median measured subcooling)."""
+    s = settings or LearningSettings()
+    fl = get_fluid(params.fluid, params.backend)
+    amb = params.ambient_pressure / BAR
+    n = len(data)
+
+    def col(name):
+        if name not in data.columns:
+            return np.full(n, np.nan)
+        return pd.to_numeric(data[name], errors="coerce").to_numpy(dtype=float)
+
+    p_e = (col("p_suc_LS") + amb) * BAR
+    p_m = (0.5 * (col("p_dis_LS") + col("p_suc_HS")) + amb) * BAR
+    p_c = (col("p_dis_HS") + amb) * BAR
+    T1, T2, T3, T4, Tc = (C_to_K(col(c)) for c in ("T_suc_LS", "T_dis_LS", "T_suc_HS", "T_dis_HS", "T_c"))
+    rc = params.cp_w * params.rho_w
+    Q_src = rc * m3h_to_m3s(col("V_source")) * (col("T_source_in") - col("T_source_out"))
+    C_w = rc * m3h_to_m3s(col("V_sink"))
+    T_w_in = C_to_K(col("T_sink_in"))
+    W_LS, W_HS = col("W_LS") * 1e3, col("W_HS") * 1e3
+    N_LS, N_HS = col("N_LS"), col("N_HS")
+    ls, hs = params.comp_LS, params.comp_HS
+    UA_SC = params.CF_SC * params.U_SC * params.A_SC
+    out = {c: np.full(n, np.nan) for c in OBS_COLUMNS}
+    if "timestamp" in data.columns:
+        out["t"] = pd.to_datetime(data["timestamp"], utc=True).astype("int64").to_numpy() / 1e9
+    elif isinstance(data.index, pd.DatetimeIndex):
+        out["t"] = data.index.tz_convert("UTC").astype("int64").to_numpy() / 1e9 \
+            if data.index.tz is not None else data.index.astype("int64").to_numpy() / 1e9
+    sub = np.full(n, np.nan)
+    for i in range(n):
+        if math.isfinite(p_c[i]) and math.isfinite(Tc[i]) and 0 < p_c[i] < fl.p_crit:
+            try:
+                sub[i] = fl.sat_p(p_c[i]).T - Tc[i]
+            except PropertyError:
+                pass
+    out["subcooling_meas_K"] = sub
+    loc = T_c_location or s.T_c_location
+    if loc == "auto":
+        loc = decide_T_c_location(sub, s)
+    lo, hi = s.eta_range
+    warm: dict = {}
+    for i in range(n):
+        vals = (p_e[i], p_m[i], p_c[i], T1[i], T2[i], T3[i], T4[i], Q_src[i])
+        if not all(math.isfinite(v) for v in vals) or not (0 < p_e[i] < p_m[i] < p_c[i] < fl.p_crit):
+            continue
+        try:
+            st_ls = stage_states(fl, p_e[i], T1[i], p_m[i], T2[i], warm, "LS")
+            st_hs = stage_states(fl, p_m[i], T3[i], p_c[i], T4[i], warm, "HS")
+            if st_ls is None or st_hs is None:
+                continue
+            h1, rho1, h2, h2s = st_ls
+            h3, rho3, h4, h4s = st_hs
+            sat_m = fl.sat_p(p_m[i])
+            eta_ls = (h2s - h1) / (h2 - h1) if h2 > h1 else math.nan
+            eta_hs = (h4s - h3) / (h4 - h3) if h4 > h3 else math.nan
+            m_ls = Q_src[i] / (h1 - sat_m.h_f)
+            num = m_ls * (h2 - sat_m.h_f)
+            if loc == "subcooler_outlet" and math.isfinite(Tc[i]):
+                sat_c = fl.sat_p(p_c[i])
+                h_sc = fl.liquid_pT(p_c[i], Tc[i]) if Tc[i] < sat_c.T - 0.05 else sat_c.h_f
+                m_hs = num / (sat_m.h_g - h_sc)
+            elif math.isfinite(C_w[i]) and C_w[i] > 0 and math.isfinite(T_w_in[i]):
+                sat_c = fl.sat_p(p_c[i])
+                pc = p_c[i]
+                m_hs, _, _, cp = subcooler(num, sat_m.h_g - sat_c.h_f, sat_c.h_f, sat_c.T, T_w_in[i],
+                                           C_w[i], UA_SC, lambda T: fl.liquid_pT(pc, T),
+                                           warm.get("m_HS"), warm.get("cp_l"), tol=1e-8)
+                warm["m_HS"], warm["cp_l"] = m_hs, cp
+            else:
+                continue
+        except (PropertyError, ZeroDivisionError, ArithmeticError):
+            continue
+        pi_ls, pi_hs = p_m[i] / p_e[i], p_c[i] / p_m[i]
+        out["pi_LS"][i], out["pi_HS"][i] = pi_ls, pi_hs
+        out["eta_is_LS"][i] = eta_ls if lo <= eta_ls <= hi else math.nan
+        out["eta_is_HS"][i] = eta_hs if lo <= eta_hs <= hi else math.nan
+        out["m_LS_kg_s"][i], out["m_HS_kg_s"][i] = m_ls, m_hs
+        if math.isfinite(W_LS[i]) and W_LS[i] > 0:
+            out["drive_LS"][i] = W_LS[i] / (m_ls * (h2 - h1))
+        if math.isfinite(W_HS[i]) and W_HS[i] > 0:
+            out["drive_HS"][i] = W_HS[i] / (m_hs * (h4 - h3))
+            out["m_HS_W_kg_s"][i] = W_HS[i] / (h4 - h3)
+        for stage, comp, N, m, rho, pi in (("LS", ls, N_LS[i], m_ls, rho1, pi_ls),
+                                            ("HS", hs, N_HS[i], m_hs, rho3, pi_hs)):
+            if math.isfinite(N) and N > 0:
+                nn = N / comp.N_nom
+                ev = m / (rho * comp.swept_volume * nn)
+                out[f"eta_vol_{stage}"][i] = ev if 0.3 <= ev <= 1.1 else math.nan
+            else:   # speed not measured: the speed the prior curve needs for this flow
+                try:
+                    nn, _ = comp.speed_for_flow(m, rho, pi)
+                except ValueError:
+                    continue
+            out[f"n_{stage}"][i] = nn
+    return pd.DataFrame(out, index=data.index)
+
+
+def decide_T_c_location(subcooling_K, settings: LearningSettings | None = None) -> str:
+    """'subcooler_outlet' when the median measured subcooling T_sat(p_c) - T_c exceeds the threshold,
+    else 'condenser_outlet' (the saturated condensate reads ~0 K, within its sensor's noise)."""
+    s = settings or LearningSettings()
+    v = np.asarray(subcooling_K, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return "condenser_outlet"
+    return "subcooler_outlet" if float(np.median(v)) > s.subcooling_threshold_K else "condenser_outlet"
+
+
+# --------------------------------------------------------------------------------------------------
+# fitting on decaying sufficient statistics
+# --------------------------------------------------------------------------------------------------
+def _zbasis(pi, n) -> np.ndarray:
+    """Scaled basis (1, z_pi, z_n, z_pi^2, z_pi z_n, z_n^2) as rows (k, 6)."""
+    zp = (np.asarray(pi, dtype=float) - _Z[0]) / _Z[1]
+    zn = (np.asarray(n, dtype=float) - _Z[2]) / _Z[3]
+    return np.column_stack([np.ones_like(zp), zp, zn, zp * zp, zp * zn, zn * zn])
+
+
+def _to_poly(a: np.ndarray) -> tuple[float, ...]:
+    """Scaled-basis coefficients -> POLY_BASIS coefficients (1, pi, n, pi^2, pi*n, n^2)."""
+    p0, sp, n0, sn = _Z
+    a0, a1, a2, a3, a4, a5 = a
+    # z_pi = (pi - p0)/sp, z_n = (n - n0)/sn ; expand
+    c_pp = a3 / sp ** 2
+    c_pn = a4 / (sp * sn)
+    c_nn = a5 / sn ** 2
+    c_p = a1 / sp - 2 * a3 * p0 / sp ** 2 - a4 * n0 / (sp * sn)
+    c_n = a2 / sn - 2 * a5 * n0 / sn ** 2 - a4 * p0 / (sp * sn)
+    c_1 = (a0 - a1 * p0 / sp - a2 * n0 / sn + a3 * p0 ** 2 / sp ** 2 + a4 * p0 * n0 / (sp * sn)
+           + a5 * n0 ** 2 / sn ** 2)
+    return (float(c_1), float(c_p), float(c_n), float(c_pp), float(c_pn), float(c_nn))
+
+
+def _poly_matrix() -> np.ndarray:
+    """Linear map M with poly = M @ a (so a covariance transforms as M C M^T)."""
+    return np.array([_to_poly(e) for e in np.eye(6)]).T
+
+
+@dataclass
+class _Stats:
+    """Decaying sufficient statistics of one curve: sum w x x^T, sum w x y, sum w y^2, sum w,
+    and the lag-1 autocorrelation of the residuals (EW mean) for the covariance inflation."""
+    A: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    b: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    yy: float = 0.0
+    w: float = 0.0
+    rho1: float = 0.0
+
+    def decay(self, f: float) -> None:
+        self.A *= f
+        self.b *= f
+        self.yy *= f
+        self.w *= f
+
+    def add(self, X: np.ndarray, y: np.ndarray) -> None:
+        self.A += X.T @ X
+        self.b += X.T @ y
+        self.yy += float(y @ y)
+        self.w += len(y)
+
+    def to_dict(self) -> dict:
+        return {"A": self.A.tolist(), "b": self.b.tolist(), "yy": self.yy, "w": self.w,
+                "rho1": self.rho1}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "_Stats":
+        return cls(np.array(d["A"], dtype=float).reshape(6, 6), np.array(d["b"], dtype=float),
+                   float(d["yy"]), float(d["w"]), float(d.get("rho1", 0.0)))
+
+
+@dataclass
+class _Coverage:
+    """Decaying 2-D histogram of (pi, n) with fixed bin widths: bin key -> weight."""
+    bin_pi: float
+    bin_n: float
+    bins: dict = field(default_factory=dict)
+
+    def decay(self, f: float) -> None:
+        for k in list(self.bins):
+            self.bins[k] *= f
+            if self.bins[k] < 1e-3:
+                del self.bins[k]
+
+    def add(self, pi: np.ndarray, n: np.ndarray) -> None:
+        ip = np.floor(pi / self.bin_pi).astype(int)
+        jn = np.floor(n / self.bin_n).astype(int)
+        for a, b in zip(ip.tolist(), jn.tolist()):
+            self.bins[(a, b)] = self.bins.get((a, b), 0.0) + 1.0
+
+    def centers(self, min_weight: float) -> np.ndarray:
+        pts = [((a + 0.5) * self.bin_pi, (b + 0.5) * self.bin_n)
+               for (a, b), w in self.bins.items() if w >= min_weight]
+        return np.array(pts, dtype=float).reshape(-1, 2)
+
+    def to_dict(self) -> dict:
+        return {"bin_pi": self.bin_pi, "bin_n": self.bin_n,
+                "bins": [[a, b, w] for (a, b), w in sorted(self.bins.items())]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "_Coverage":
+        return cls(float(d["bin_pi"]), float(d["bin_n"]),
+                   {(int(a), int(b)): float(w) for a, b, w in d["bins"]})
+
+
+def hull_distance(points: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Distance of each query point q (k, 2) to the convex hull of ``points`` (m, 2), in the same
+    (scaled) units; 0 inside. Degenerate hulls (1 point, collinear points) are handled."""
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    if len(points) == 0:
+        return np.full(len(q), np.inf)
+    pts = np.unique(points, axis=0)
+    hull = pts
+    if len(pts) >= 3:
+        try:
+            from scipy.spatial import ConvexHull
+            h = ConvexHull(pts)
+            hull = pts[h.vertices]
+        except Exception:  # noqa: BLE001 - collinear points (QhullError): use them as a polyline
+            order = np.lexsort((pts[:, 1], pts[:, 0]))
+            hull = pts[order][[0, -1]]
+    if len(hull) == 1:
+        return np.linalg.norm(q - hull[0], axis=1)
+    edges = list(zip(hull, np.roll(hull, -1, axis=0))) if len(hull) >= 3 else [(hull[0], hull[1])]
+    d = np.full(len(q), np.inf)
+    for a, b in edges:
+        ab = b - a
+        t = np.clip(((q - a) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+        d = np.minimum(d, np.linalg.norm(q - (a + t[:, None] * ab), axis=1))
+    if len(hull) >= 3:   # inside test: same side of every (counter-clockwise) edge
+        inside = np.ones(len(q), dtype=bool)
+        for a, b in edges:
+            cross = (b[0] - a[0]) * (q[:, 1] - a[1]) - (b[1] - a[1]) * (q[:, 0] - a[0])
+            inside &= cross >= -1e-12
+        d[inside] = 0.0
+    return d
+
+
+class CompressorLearner:
+    """Learns eta_is and eta_vol (per stage) and the drive factors from observations.
+
+    prior : the configured compressors (plant.yaml's curves)
+    """
+
+    def __init__(self, prior: PlantParams, settings: LearningSettings | None = None) -> None:
+        self.s = settings or LearningSettings()
+        self.prior = {"LS": prior.comp_LS, "HS": prior.comp_HS}
+        self.stats = {(st, c): _Stats() for st in STAGES for c in CURVES}
+        self.coverage = {st: _Coverage(self.s.bin_pi, self.s.bin_n) for st in STAGES}
+        self.drive = {st: [0.0, 0.0] for st in STAGES}          # decaying sum w*x, sum w
+        self.subcooling = [0.0, 0.0]                             # decaying sum, weight
+        self.t_last: float | None = None
+        self.n_seen = 0
+        self.commissioning: dict | None = None                  # curves frozen at commissioning
+        self._prior_stats = {(st, c): self._prior_pseudo(st, c) for st in STAGES for c in CURVES}
+        self._fit_cache: dict | None = None
+
+    # ---------------------------------------------------------------------------- update
+    def _prior_pseudo(self, stage: str, curve: str) -> _Stats:
+        comp = self.prior[stage]
+        pi = np.linspace(1.3, 4.5, 17)
+        n = np.linspace(comp.N_min / comp.N_nom, comp.N_max / comp.N_nom, 9)
+        P, N = np.meshgrid(pi, n)
+        P, N = P.ravel(), N.ravel()
+        f = comp.eta_is_at if curve == "eta_is" else comp.eta_vol_at
+        y = np.array([f(a, b) for a, b in zip(P, N)])
+        X = _zbasis(P, N)
+        w = self.s.prior_weight / len(y)
+        st = _Stats()
+        st.add(X * math.sqrt(w), y * math.sqrt(w))
+        st.w = self.s.prior_weight
+        return st
+
+    def update(self, obs: pd.DataFrame, t_now: float | None = None) -> int:
+        """Add a batch of observations (``observe``'s frame); older data decays to t_now (default:
+        the batch's last time). Returns how many samples carried a usable eta_is observation."""
+        t = obs["t"].to_numpy(dtype=float) if "t" in obs else np.full(len(obs), np.nan)
+        if t_now is None:
+            t_now = float(np.nanmax(t)) if np.isfinite(t).any() else (self.t_last or 0.0)
+        if self.t_last is not None and t_now > self.t_last:
+            f = 0.5 ** ((t_now - self.t_last) / (self.s.half_life_days * DAY_S))
+            for v in self.stats.values():
+                v.decay(f)
+            for v in self.coverage.values():
+                v.decay(f)
+            for v in self.drive.values():
+                v[0] *= f
+                v[1] *= f
+            self.subcooling[0] *= f
+            self.subcooling[1] *= f
+        if self.t_last is None or t_now > self.t_last:
+            self.t_last = t_now
+        used = 0
+        for stage in STAGES:
+            pi = obs[f"pi_{stage}"].to_numpy(dtype=float)
+            n = obs[f"n_{stage}"].to_numpy(dtype=float)
+            for curve in CURVES:
+                y = obs[f"{curve}_{stage}"].to_numpy(dtype=float)
+                ok = np.isfinite(pi) & np.isfinite(n) & np.isfinite(y)
+                if ok.sum() < 3:
+                    continue
+                X = _zbasis(pi[ok], n[ok])
+                st = self.stats[(stage, curve)]
+                # serial correlation of the residuals against the current fit (EW mean of the lag-1
+                # coefficient), for the covariance inflation: one-minute residuals are not independent
+                a = self._coef(stage, curve)
+                r = y[ok] - X @ a
+                if len(r) >= 10 and np.std(r) > 0:
+                    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1])
+                    if math.isfinite(rho):
+                        k = min(1.0, len(r) / max(st.w + len(r), 1.0))
+                        st.rho1 = (1 - k) * st.rho1 + k * max(0.0, min(rho, 0.98))
+                st.add(X, y[ok])
+                if curve == "eta_is":
+                    used = max(used, int(ok.sum()))
+            ok = np.isfinite(pi) & np.isfinite(n) & np.isfinite(obs[f"eta_is_{stage}"].to_numpy(dtype=float))
+            self.coverage[stage].add(pi[ok], n[ok])
+            d = obs[f"drive_{stage}"].to_numpy(dtype=float)
+            d = d[np.isfinite(d) & (d > 0.5) & (d < 2.0)]
+            if len(d):
+                self.drive[stage][0] += float(np.sum(d))
+                self.drive[stage][1] += float(len(d))
+        sub = obs["subcooling_meas_K"].to_numpy(dtype=float) if "subcooling_meas_K" in obs else []
+        sub = np.asarray(sub)[np.isfinite(sub)]
+        if len(sub):
+            self.subcooling[0] += float(np.sum(sub))
+            self.subcooling[1] += float(len(sub))
+        self.n_seen += used
+        self._fit_cache = None
+        return used
+
+    def freeze_commissioning(self) -> None:
+        """Keep the curves as they are now as the commissioning reference (for the drift figure)."""
+        self.commissioning = {"curves": self.curves_dict(), "coverage": {
+            st: self.coverage[st].to_dict() for st in STAGES}}
+
+    # ---------------------------------------------------------------------------- results
+    def _coef(self, stage: str, curve: str) -> np.ndarray:
+        ps = self._prior_stats[(stage, curve)]
+        st = self.stats[(stage, curve)]
+        A = ps.A + st.A
+        return np.linalg.solve(A, ps.b + st.b)
+
+    def learned(self, stage: str, curve: str) -> bool:
+        return self.stats[(stage, curve)].w >= self.s.min_samples
+
+    def covariance(self, stage: str, curve: str) -> np.ndarray:
+        """Covariance of the scaled-basis coefficients: s^2 (A_prior + A_data)^-1, s^2 the data's
+        residual variance inflated by (1 + rho1)/(1 - rho1) for serially correlated residuals."""
+        ps = self._prior_stats[(stage, curve)]
+        st = self.stats[(stage, curve)]
+        A = ps.A + st.A
+        a = np.linalg.solve(A, ps.b + st.b)
+        if st.w > 6:
+            sse = st.yy - 2 * a @ st.b + a @ st.A @ a
+            s2 = max(sse, 0.0) / (st.w - 6)
+        else:
+            s2 = 0.02 ** 2
+        s2 = max(s2, 1e-8) * (1 + st.rho1) / (1 - st.rho1)
+        return s2 * np.linalg.inv(A)
+
+    def rmse(self, stage: str, curve: str) -> float:
+        st = self.stats[(stage, curve)]
+        if st.w <= 6:
+            return math.nan
+        a = self._coef(stage, curve)
+        return math.sqrt(max(st.yy - 2 * a @ st.b + a @ st.A @ a, 0.0) / st.w)
+
+    def drive_factor(self, stage: str) -> float:
+        s, w = self.drive[stage]
+        return s / w if w >= self.s.min_samples / 4 else 1.0
+
+    def T_c_location(self) -> str:
+        if self.s.T_c_location != "auto":
+            return self.s.T_c_location
+        s, w = self.subcooling
+        if w <= 0:
+            return "condenser_outlet"
+        return "subcooler_outlet" if s / w > self.s.subcooling_threshold_K else "condenser_outlet"
+
+    def compressor(self, stage: str, coef: dict | None = None) -> Compressor:
+        """The stage's Compressor with the learned curves (the prior's where not learned yet) and
+        drive factor. ``coef`` overrides scaled-basis coefficients (uncertainty draws)."""
+        comp = self.prior[stage]
+        kw = {}
+        for curve in CURVES:
+            if coef is not None and curve in coef:
+                kw[curve] = _to_poly(coef[curve])
+            elif self.learned(stage, curve):
+                kw[curve] = _to_poly(self._coef(stage, curve))
+        kw["drive_factor"] = self.drive_factor(stage)
+        return comp.replace(**kw)
+
+    def apply(self, params: PlantParams) -> PlantParams:
+        """``params`` with the learned compressors."""
+        return params.replace(comp_LS=self.compressor("LS"), comp_HS=self.compressor("HS"))
+
+    def draws(self, k: int, rng: np.random.Generator) -> list[dict]:
+        """k draws of the learned coefficients from their covariance (scaled basis), per stage:
+        [{"LS": {"eta_is": a, "eta_vol": a}, "HS": {...}}, ...] (only learned curves vary)."""
+        out = []
+        chol = {}
+        for st in STAGES:
+            for c in CURVES:
+                if self.learned(st, c):
+                    C = self.covariance(st, c)
+                    w, V = np.linalg.eigh((C + C.T) / 2)
+                    chol[(st, c)] = (self._coef(st, c), V * np.sqrt(np.clip(w, 0, None)))
+        for _ in range(k):
+            d = {st: {} for st in STAGES}
+            for (st, c), (a, L) in chol.items():
+                d[st][c] = a + L @ rng.standard_normal(6)
+            out.append(d)
+        return out
+
+    def coverage_distance(self, stage: str, pi, n, reference: dict | None = None) -> np.ndarray:
+        """Distance of (pi, n) points to the covered region, in units of the margin (<= 1: within
+        the allowed extrapolation; 0: inside the hull of the covered bins). inf when nothing is
+        covered. ``reference``: a coverage document (commissioning) instead of the current one."""
+        cov = _Coverage.from_dict(reference) if reference is not None else self.coverage[stage]
+        c = cov.centers(self.s.min_bin_weight)
+        if len(c) == 0:
+            return np.full(np.atleast_1d(pi).shape, np.inf)
+        scale = np.array([self.s.margin_pi, self.s.margin_n])
+        q = np.column_stack([np.atleast_1d(pi), np.atleast_1d(n)]).astype(float)
+        # the covered bins' hull, widened by half a bin (a bin centre stands for its whole bin)
+        half = 0.5 * np.array([cov.bin_pi, cov.bin_n])
+        corners = np.concatenate([c + half * np.array(sg) for sg in ((1, 1), (1, -1), (-1, 1), (-1, -1))])
+        return hull_distance(corners / scale, q / scale)
+
+    def eta_is(self, stage: str, pi, n) -> np.ndarray:
+        comp = self.compressor(stage)
+        return np.array([comp.eta_is_at(a, b) for a, b in zip(np.atleast_1d(pi), np.atleast_1d(n))])
+
+    def drift_pct(self, stage: str, pi: float, n: float) -> float:
+        """eta_is now minus at commissioning at (pi, n), in percentage points; NaN when there is no
+        commissioning reference or (pi, n) lies outside the region it covered."""
+        if self.commissioning is None:
+            return math.nan
+        ref_cov = self.commissioning["coverage"][stage]
+        if not self.coverage_distance(stage, pi, n, reference=ref_cov)[0] <= 1.0:
+            return math.nan
+        c = self.commissioning["curves"][stage]["eta_is"]
+        ref = Compressor(1.0, 1.0, 0.5, 2.0, tuple(c), tuple(c))
+        return 100.0 * (self.compressor(stage).eta_is_at(pi, n) - ref.eta_is_at(pi, n))
+
+    def curves_dict(self) -> dict:
+        """The curves in use in plant.yaml's form (POLY_BASIS coefficients), per stage."""
+        out = {}
+        for st in STAGES:
+            comp = self.compressor(st)
+            out[st] = {"eta_is": list(comp.eta_is), "eta_vol": list(comp.eta_vol),
+                       "drive_factor": comp.drive_factor,
+                       "learned": {c: self.learned(st, c) for c in CURVES},
+                       "samples": {c: self.stats[(st, c)].w for c in CURVES},
+                       "rmse": {c: self.rmse(st, c) for c in CURVES}}
+        return out
+
+    def summary(self) -> dict:
+        return {"curves": self.curves_dict(), "T_c_location": self.T_c_location(),
+                "basis": list(POLY_BASIS), "n_seen": self.n_seen}
+
+    # ---------------------------------------------------------------------------- state
+    def to_dict(self) -> dict:
+        return {
+            "format": "hp-edge-compressors/1",
+            "settings": {f.name: getattr(self.s, f.name) for f in fields(self.s)},
+            "t_last": self.t_last, "n_seen": self.n_seen,
+            "stats": {f"{st}.{c}": v.to_dict() for (st, c), v in self.stats.items()},
+            "coverage": {st: v.to_dict() for st, v in self.coverage.items()},
+            "drive": self.drive, "subcooling": self.subcooling,
+            "commissioning": self.commissioning,
+            "curves": self.curves_dict(), "T_c_location": self.T_c_location(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, prior: PlantParams,
+                  settings: LearningSettings | None = None) -> "CompressorLearner":
+        if not isinstance(d, dict) or d.get("format") != "hp-edge-compressors/1":
+            raise LearningError("compressor state: not a 'hp-edge-compressors/1' document")
+        try:
+            s = settings or LearningSettings.from_dict(
+                {k: v for k, v in d.get("settings", {}).items()})
+            obj = cls(prior, s)
+            obj.t_last = d.get("t_last")
+            obj.n_seen = int(d.get("n_seen", 0))
+            for key, v in d["stats"].items():
+                st, c = key.split(".")
+                obj.stats[(st, c)] = _Stats.from_dict(v)
+            for st, v in d["coverage"].items():
+                obj.coverage[st] = _Coverage.from_dict(v)
+            obj.drive = {k: [float(a), float(b)] for k, (a, b) in d["drive"].items()}
+            obj.subcooling = [float(x) for x in d["subcooling"]]
+            obj.commissioning = d.get("commissioning")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LearningError(f"compressor state: {exc}") from exc
+        return obj
+
+    def copy(self) -> "CompressorLearner":
+        return CompressorLearner.from_dict(self.to_dict(), _params_stub(self.prior), self.s)
+
+
+def _params_stub(prior: dict):
+    """A minimal object with comp_LS/comp_HS for rebuilding a learner."""
+    class _P:
+        comp_LS = prior["LS"]
+        comp_HS = prior["HS"]
+    return _P()
+
+
+def with_settings(learner: CompressorLearner, **kw) -> CompressorLearner:
+    return CompressorLearner.from_dict(learner.to_dict(), _params_stub(learner.prior),
+                                       replace(learner.s, **kw))

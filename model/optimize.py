@@ -117,16 +117,14 @@ class Point:
         return math.isfinite(self.COP)
 
 
-def representative(data: pd.DataFrame, k: int) -> tuple[pd.DataFrame, np.ndarray]:
-    """k representative rows of ``data`` (canonical inputs) and their weights (sample counts).
-
-    Samples are sorted along the first principal component of their standardised inputs and split
-    into k groups of (nearly) equal size; each group is replaced by its mean. With k >= len(data)
-    the data itself (weights 1)."""
+def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:
+    """Row positions of ``data`` in k groups of similar operation: the samples sorted along the
+    first principal component of their standardised inputs, split into k nearly equal parts
+    (one group per row when k >= len(data))."""
     X = data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
     n = len(X)
     if k >= n:
-        return data[list(INPUT_COLUMNS)].copy(), np.ones(n)
+        return [np.array([i]) for i in range(n)]
     sd = X.std(axis=0)
     Z = (X - X.mean(axis=0)) / np.where(sd > 0, sd, 1.0)
     try:
@@ -134,9 +132,17 @@ def representative(data: pd.DataFrame, k: int) -> tuple[pd.DataFrame, np.ndarray
         order = np.argsort(Z @ Vt[0], kind="stable")
     except np.linalg.LinAlgError:
         order = np.arange(n)
-    groups = np.array_split(order, k)
-    rows = np.array([X[g].mean(axis=0) for g in groups if len(g)])
-    w = np.array([len(g) for g in groups if len(g)], dtype=float)
+    return [g for g in np.array_split(order, k) if len(g)]
+
+
+def representative(data: pd.DataFrame, k: int,
+                   parts: list[np.ndarray] | None = None) -> tuple[pd.DataFrame, np.ndarray]:
+    """k representative rows of ``data`` (canonical inputs) and their weights (sample counts):
+    each group of ``groups(data, k)`` replaced by its mean (the data itself when k >= len(data))."""
+    X = data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    parts = parts if parts is not None else groups(data, k)
+    rows = np.array([X[g].mean(axis=0) for g in parts])
+    w = np.array([len(g) for g in parts], dtype=float)
     return pd.DataFrame(rows, columns=list(INPUT_COLUMNS)), w
 
 

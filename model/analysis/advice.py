@@ -33,8 +33,8 @@ import numpy as np
 import pandas as pd
 
 from ..batch import INPUT_COLUMNS
-from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, representative, search,
-                        window_range)
+from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, groups, representative,
+                        search, window_range)
 from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner, _to_poly
 
@@ -98,25 +98,34 @@ class AdviceResult:
     evaluations: int
 
 
-def _feasible(learner: CompressorLearner | None, params: PlantParams):
-    """Candidate filter: every evaluated row's (pi, n) per stage within the covered region + margin
-    (only for curves already learned; the prior is used elsewhere anyway)."""
+def _operating_points(p: Point, params: PlantParams) -> dict:
+    """Per stage the (pi, n) arrays of an evaluation's rows."""
+    f = p.frame
+    p_e, p_m, p_c = (f[c].to_numpy(dtype=float) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
+    return {"LS": (p_m / p_e, f["N_LS_rpm"].to_numpy(dtype=float) / params.comp_LS.N_nom),
+            "HS": (p_c / p_m, f["N_HS_rpm"].to_numpy(dtype=float) / params.comp_HS.N_nom)}
+
+
+def _feasible(learner: CompressorLearner | None, params: PlantParams, offsets: dict):
+    """Candidate filter: every evaluated row's (pi, n) per stage, less the model's offset from the
+    measured operating point at the actual set point, within the covered region + margin (only for
+    curves already learned). The offset keeps a model error in p_c or p_m from counting as
+    extrapolation: what is judged is how far the candidate moves the compressors from where the
+    plant is measured."""
     if learner is None:
         return None
     stages = [st for st in STAGES if learner.learned(st, "eta_is")]
     if not stages:
         return None
-    N_nom = {"LS": params.comp_LS.N_nom, "HS": params.comp_HS.N_nom}
 
     def ok(p: Point) -> bool:
-        f = p.frame
-        if not np.isin(f["status"].to_numpy(), SOLVED).all():
+        if not np.isin(p.frame["status"].to_numpy(), SOLVED).all():
             return False
-        p_e, p_m, p_c = (f[c].to_numpy(dtype=float) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
+        pts = _operating_points(p, params)
         for st in stages:
-            pi = p_m / p_e if st == "LS" else p_c / p_m
-            n = f[f"N_{st}_rpm"].to_numpy(dtype=float) / N_nom[st]
-            if not (learner.coverage_distance(st, pi, n) <= 1.0).all():
+            pi, n = pts[st]
+            d_pi, d_n = offsets.get(st, (0.0, 0.0))
+            if not (learner.coverage_distance(st, pi - d_pi, n - d_n) <= 1.0).all():
                 return False
         return True
     return ok
@@ -135,10 +144,12 @@ def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> P
 def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
            settings: AdviceSettings, previous_rec_barg: float | None = None,
            coverage_share: float = 1.0, curve_residual: dict | None = None,
-           R_th_f_se_K_per_kW: float = 0.0) -> AdviceResult:
+           R_th_f_se_K_per_kW: float = 0.0, measured: dict | None = None) -> AdviceResult:
     """The advice for the window ``data`` (canonical inputs) on the adaptive model ``adaptive``
     (learned curves applied). ``coverage_share`` and ``curve_residual`` come from the chain (they
-    need the measured side); raises OptimizationError when nothing can be optimised."""
+    need the measured side), and ``measured`` the per-sample compressor operating points
+    ({"pi_LS": array, "n_LS": array, ...}, NaN where unknown); raises OptimizationError when nothing
+    can be optimised."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
@@ -149,12 +160,26 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         raise OptimizationError("the model solves none of the window's samples at their actual set points")
     if not ok.all():
         data = data.loc[ok].reset_index(drop=True)
+        if measured is not None:
+            measured = {k: np.asarray(v, dtype=float)[ok] for k, v in measured.items()}
         full = Evaluator(data, np.ones(len(data)), adaptive)
         ref = full.at(None)
     lo, hi = window_range(ref.frame, amb)
-    rows, w = representative(data, s.representative_points)
+    parts = groups(data, s.representative_points)
+    rows, w = representative(data, s.representative_points, parts)
     ev = Evaluator(rows, w, adaptive)
-    feasible = _feasible(learner, adaptive)
+    # the model's offset from the measured compressor operating points at the actual set point
+    offsets = {}
+    if measured is not None:
+        model_pts = _operating_points(ev.at(None), adaptive)
+        for st in STAGES:
+            pi_m = np.array([np.nanmean(measured[f"pi_{st}"][g]) for g in parts])
+            n_m = np.array([np.nanmean(measured[f"n_{st}"][g]) for g in parts])
+            pi_x, n_x = model_pts[st]
+            d_pi = float(np.nanmean(pi_x - pi_m)) if np.isfinite(pi_m).any() else 0.0
+            d_n = float(np.nanmean(n_x - n_m)) if np.isfinite(n_m).any() else 0.0
+            offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
+    feasible = _feasible(learner, adaptive, offsets)
     actual = float(data["p_m_sp"].mean())
     sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
     # dead band against the previous recommendation (if it is still a valid candidate here)

@@ -30,7 +30,7 @@ from ..batch import INPUT_COLUMNS, simulate_batch, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
-from ..optimize import OptimizationError
+from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
 from .advice import AdviceResult, AdviceSettings, advise
@@ -45,6 +45,7 @@ class ChainSettings:
     heat_balance_limit_pct: float = DEFAULT_HEAT_BALANCE_LIMIT_PCT
     optimize: bool = True
     learn_compressors: bool = True
+    condenser_correction: bool = True           # scale the condenser unit's UA to the measured p_c
     advice: AdviceSettings = AdviceSettings()
     learning: LearningSettings = LearningSettings()
 
@@ -73,6 +74,7 @@ class ChainState:
     fouling_previous: dict | None = None        # previous fouling parameters (change penalty)
     last_rec_barg: float | None = None          # previous confident recommendation (dead band)
     last_fouling: CalibrationResult | None = None
+    cond_factor: float | None = None            # last window's condenser-unit factor
 
 
 @dataclass
@@ -84,6 +86,8 @@ class WindowResult:
     n_samples: int
     status: str = "ok"                          # "ok" | "skipped: ..." | "failed: ..."
     heat_balance_pct: float = math.nan
+    CF_cond_window: float = math.nan            # condenser-unit UA factor fitted to this window's p_c
+    p_c_error_bar: float = math.nan             # model - measured p_c before that correction
     R_th_f_K_per_kW: float = math.nan
     R_th_f_se_K_per_kW: float = math.nan
     R_th_f_share_pct: float = math.nan
@@ -180,6 +184,53 @@ def _times(data: pd.DataFrame) -> pd.DatetimeIndex:
     if isinstance(data.index, pd.DatetimeIndex):
         return data.index.tz_localize("UTC") if data.index.tz is None else data.index
     raise ValueError("window data needs a 'timestamp' column or a DatetimeIndex")
+
+
+def scale_condenser(params: PlantParams, k: float) -> PlantParams:
+    """The condenser unit's three conductances (DSH, condenser, SC) scaled by k."""
+    return params.replace(CF_DSH=params.CF_DSH * k, CF_con=params.CF_con * k, CF_SC=params.CF_SC * k)
+
+
+def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
+                     points: int = 8, tol_bar: float = 0.002) -> tuple[float, float]:
+    """The factor k on the condenser unit's conductance that makes the model's mean condensing
+    pressure equal the measured one over the window (evaluated on ``points`` representative
+    operating points at the actual set points), and the model's p_c error before it [bar].
+
+    The initial calibration cannot separate CF_DSH, CF_con and CF_SC (Q_sink and W_total carry the
+    same information once Q_source is an input), and a data sheet that is not the plant's leaves the
+    fixed model's p_c off by up to a bar at conditions other than commissioning's (the water-side
+    film changes with the sink flow): every pressure ratio the learned compressor curves are read at
+    moves with it. p_c is measured every minute, so the chain corrects it per window like R_th,f for
+    the evaporator. A secant on ln k (p_c falls as k rises), k within [0.3, 3]; (NaN, err) when it
+    does not converge."""
+    parts = groups(der, points)
+    rows, w = representative(der, points, parts)
+    meas = der["p_c_bar"].to_numpy(dtype=float)
+    target = float(np.nansum([w[i] * np.nanmean(meas[g]) for i, g in enumerate(parts)]) / w.sum())
+
+    def err(k: float) -> float:
+        f = simulate_batch(rows, scale_condenser(params, k), columns=("p_c_bar",))
+        if not solved_mask(f).all():
+            return math.nan
+        return float(np.sum(w * f["p_c_bar"].to_numpy(dtype=float)) / w.sum()) - target
+
+    e1 = err(1.0)
+    if not math.isfinite(e1) or not math.isfinite(target):
+        return math.nan, e1
+    x0, f0 = 0.0, e1
+    x1 = math.log(k0) if abs(math.log(k0)) > 1e-6 else 0.05 * (1 if e1 > 0 else -1)
+    f1 = err(math.exp(x1))
+    for _ in range(20):
+        if not math.isfinite(f1):
+            return math.nan, e1
+        if abs(f1) < tol_bar:
+            return math.exp(x1), e1
+        if f1 == f0:
+            break
+        x0, f0, x1 = x1, f1, min(max(x1 - f1 * (x1 - x0) / (f1 - f0), math.log(0.3)), math.log(3.0))
+        f1 = err(math.exp(x1))
+    return math.nan, e1
 
 
 class AnalysisChain:
@@ -284,6 +335,16 @@ class AnalysisChain:
         if self.spec.change_penalty > 0:
             state.fouling_previous = fc.params
         adaptive = fc.apply(base)
+        # the condenser unit's conductance to this window's measured condensing pressure
+        if self.s.condenser_correction:
+            k, err = condenser_factor(der, adaptive, state.cond_factor or 1.0,
+                                      self.s.advice.representative_points)
+            res.CF_cond_window = k
+            res.p_c_error_bar = err
+            if math.isfinite(k):
+                state.cond_factor = k
+                adaptive = scale_condenser(adaptive, k)
+                base = scale_condenser(base, k)
         res.detail["calibration"] = fc.to_dict()
         self._fouling_figures(res, fc, fixed, adaptive, der)
         self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive)
@@ -300,11 +361,15 @@ class AnalysisChain:
                             learner.drift_pct(st, float(np.median(pi[ok])), float(np.median(nn[ok]))))
         # ---- advice
         if self.s.optimize:
+            measured = None
+            if obs is not None:
+                measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
+                            for st in STAGES for q in ("pi", "n")}
             try:
                 adv = advise(der, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
                              coverage_share=res.coverage_share if learner is not None else 1.0,
                              curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
-                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW)
+                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured)
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
                 return res

@@ -5,13 +5,17 @@ anything else, and a plant's curves are not the data sheet's. The plant measures
 learn them, every minute:
 
 - eta_is per stage from suction and discharge (p, T) (adiabatic compressors, as in the model);
-- m_LS from the evaporator duty, Q_source / (h_suc,LS - h_f(p_m)); m_HS from the open intercooler,
-  m_LS (h_dis,LS - h_f(p_m)) / (h_g(p_m) - h_SC,out), where the liquid entering the HS valve is
-  measured when T_c is the subcooler outlet, and otherwise modelled with the SC's eps-NTU (T_c then
-  is the saturated condensate; which of the two a plant has is told from T_sat(p_c) - T_c or set);
+- m_LS from the evaporator duty, Q_source / (h_suc,LS - h_f(p_m));
+- m_HS from the open intercooler, m_LS (h_dis,LS - h_f(p_m)) / (h_g(p_m) - h_SC,out), where T_c is
+  the liquid after the subcooler (so h_SC,out is measured); where T_c is the saturated condensate the
+  SC outlet is not measured and modelling it would lean on CF_SC, which the initial calibration
+  cannot separate from CF_con (one SC-factor error of 2x moved m_HS by 3 %): m_HS then comes from
+  the HS power, W_HS / (d * (h_dis - h_suc)), with the LS stage's measured drive factor d (same
+  kind of motor and drive). Which of the two a plant has is told from T_sat(p_c) - T_c, or set;
 - eta_vol = m / (rho_suc * V_s * N/N_nom) where the speeds are measured (optional tags);
 - the drive and heat-loss factor W_el / (m * (h_dis - h_suc)) per stage, used for the power
-  prediction; m_HS from W_HS / (h_dis - h_suc) is the cross-check of the intercooler balance.
+  prediction; with T_c at the subcooler outlet the HS factor is measured too (cross-check of the
+  intercooler balance against the HS power).
 
 Each curve is fitted on plant.yaml's polynomial form (``model.params.POLY_BASIS`` in pi and
 n = N/N_nom) by weighted least squares on sufficient statistics that forget old data exponentially
@@ -33,7 +37,6 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import pandas as pd
 
-from ..components import subcooler
 from ..fluid import Fluid, PropertyError, get_fluid
 from ..params import POLY_BASIS, Compressor, PlantParams
 from ..units import BAR, C_to_K, m3h_to_m3s
@@ -159,12 +162,9 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
     T1, T2, T3, T4, Tc = (C_to_K(col(c)) for c in ("T_suc_LS", "T_dis_LS", "T_suc_HS", "T_dis_HS", "T_c"))
     rc = params.cp_w * params.rho_w
     Q_src = rc * m3h_to_m3s(col("V_source")) * (col("T_source_in") - col("T_source_out"))
-    C_w = rc * m3h_to_m3s(col("V_sink"))
-    T_w_in = C_to_K(col("T_sink_in"))
     W_LS, W_HS = col("W_LS") * 1e3, col("W_HS") * 1e3
     N_LS, N_HS = col("N_LS"), col("N_HS")
     ls, hs = params.comp_LS, params.comp_HS
-    UA_SC = params.CF_SC * params.U_SC * params.A_SC
     out = {c: np.full(n, np.nan) for c in OBS_COLUMNS}
     if "timestamp" in data.columns:
         out["t"] = pd.to_datetime(data["timestamp"], utc=True).astype("int64").to_numpy() / 1e9
@@ -184,6 +184,8 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
         loc = decide_T_c_location(sub, s)
     lo, hi = s.eta_range
     warm: dict = {}
+    dh_HS = np.full(n, np.nan)
+    rho_suc = {"LS": np.full(n, np.nan), "HS": np.full(n, np.nan)}
     for i in range(n):
         vals = (p_e[i], p_m[i], p_c[i], T1[i], T2[i], T3[i], T4[i], Q_src[i])
         if not all(math.isfinite(v) for v in vals) or not (0 < p_e[i] < p_m[i] < p_c[i] < fl.p_crit):
@@ -196,47 +198,51 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
             h1, rho1, h2, h2s = st_ls
             h3, rho3, h4, h4s = st_hs
             sat_m = fl.sat_p(p_m[i])
-            eta_ls = (h2s - h1) / (h2 - h1) if h2 > h1 else math.nan
-            eta_hs = (h4s - h3) / (h4 - h3) if h4 > h3 else math.nan
             m_ls = Q_src[i] / (h1 - sat_m.h_f)
-            num = m_ls * (h2 - sat_m.h_f)
             if loc == "subcooler_outlet" and math.isfinite(Tc[i]):
+                # the liquid entering the HS valve is measured: the intercooler balance is exact
                 sat_c = fl.sat_p(p_c[i])
                 h_sc = fl.liquid_pT(p_c[i], Tc[i]) if Tc[i] < sat_c.T - 0.05 else sat_c.h_f
-                m_hs = num / (sat_m.h_g - h_sc)
-            elif math.isfinite(C_w[i]) and C_w[i] > 0 and math.isfinite(T_w_in[i]):
-                sat_c = fl.sat_p(p_c[i])
-                pc = p_c[i]
-                m_hs, _, _, cp = subcooler(num, sat_m.h_g - sat_c.h_f, sat_c.h_f, sat_c.T, T_w_in[i],
-                                           C_w[i], UA_SC, lambda T: fl.liquid_pT(pc, T),
-                                           warm.get("m_HS"), warm.get("cp_l"), tol=1e-8)
-                warm["m_HS"], warm["cp_l"] = m_hs, cp
-            else:
-                continue
+                out["m_HS_kg_s"][i] = m_ls * (h2 - sat_m.h_f) / (sat_m.h_g - h_sc)
         except (PropertyError, ZeroDivisionError, ArithmeticError):
             continue
-        pi_ls, pi_hs = p_m[i] / p_e[i], p_c[i] / p_m[i]
-        out["pi_LS"][i], out["pi_HS"][i] = pi_ls, pi_hs
+        eta_ls = (h2s - h1) / (h2 - h1) if h2 > h1 else math.nan
+        eta_hs = (h4s - h3) / (h4 - h3) if h4 > h3 else math.nan
+        out["pi_LS"][i], out["pi_HS"][i] = p_m[i] / p_e[i], p_c[i] / p_m[i]
         out["eta_is_LS"][i] = eta_ls if lo <= eta_ls <= hi else math.nan
         out["eta_is_HS"][i] = eta_hs if lo <= eta_hs <= hi else math.nan
-        out["m_LS_kg_s"][i], out["m_HS_kg_s"][i] = m_ls, m_hs
+        out["m_LS_kg_s"][i] = m_ls
+        dh_HS[i] = h4 - h3
+        rho_suc["LS"][i], rho_suc["HS"][i] = rho1, rho3
         if math.isfinite(W_LS[i]) and W_LS[i] > 0:
             out["drive_LS"][i] = W_LS[i] / (m_ls * (h2 - h1))
         if math.isfinite(W_HS[i]) and W_HS[i] > 0:
-            out["drive_HS"][i] = W_HS[i] / (m_hs * (h4 - h3))
             out["m_HS_W_kg_s"][i] = W_HS[i] / (h4 - h3)
-        for stage, comp, N, m, rho, pi in (("LS", ls, N_LS[i], m_ls, rho1, pi_ls),
-                                            ("HS", hs, N_HS[i], m_hs, rho3, pi_hs)):
-            if math.isfinite(N) and N > 0:
-                nn = N / comp.N_nom
-                ev = m / (rho * comp.swept_volume * nn)
-                out[f"eta_vol_{stage}"][i] = ev if 0.3 <= ev <= 1.1 else math.nan
-            else:   # speed not measured: the speed the prior curve needs for this flow
-                try:
-                    nn, _ = comp.speed_for_flow(m, rho, pi)
-                except ValueError:
-                    continue
-            out[f"n_{stage}"][i] = nn
+    if loc != "subcooler_outlet":
+        # T_c is the saturated condensate: the SC outlet is not measured, and modelling it would
+        # lean on CF_SC, which the initial calibration cannot separate from CF_con. The HS flow
+        # then comes from its electric power with the LS stage's drive factor (same kind of motor
+        # and drive; the LS factor is measured: its mass flow comes from the evaporator duty)
+        d = out["drive_LS"][np.isfinite(out["drive_LS"])]
+        d_ls = float(np.median(d)) if len(d) else 1.0
+        out["m_HS_kg_s"] = out["m_HS_W_kg_s"] / d_ls
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["drive_HS"] = W_HS / (out["m_HS_kg_s"] * dh_HS)
+    for stage, comp, N in (("LS", ls, N_LS), ("HS", hs, N_HS)):
+        m = out[f"m_{stage}_kg_s"]
+        rho = rho_suc[stage]
+        pi = out[f"pi_{stage}"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nn = N / comp.N_nom
+            ev = m / (rho * comp.swept_volume * nn)
+        measured = np.isfinite(N) & (N > 0) & np.isfinite(m)
+        out[f"eta_vol_{stage}"] = np.where(measured & (ev >= 0.3) & (ev <= 1.1), ev, np.nan)
+        out[f"n_{stage}"] = np.where(measured, nn, np.nan)
+        for i in np.flatnonzero(~measured & np.isfinite(m) & np.isfinite(rho) & np.isfinite(pi)):
+            try:   # speed not measured: the speed the prior curve needs for this flow
+                out[f"n_{stage}"][i] = comp.speed_for_flow(m[i], rho[i], pi[i])[0]
+            except ValueError:
+                pass
     return pd.DataFrame(out, index=data.index)
 
 

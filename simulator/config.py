@@ -145,6 +145,8 @@ class CompressorTruth:
 
 
 PERTURBED = "perturbed"      # truth.compressors.family: plant.yaml's polynomials perturbed (LS/HS)
+NOMINAL = "nominal"          # ... plant.yaml's polynomials exactly (the model's own curves)
+RESERVED_FAMILIES = (PERTURBED, NOMINAL)
 
 
 @dataclass(frozen=True)
@@ -286,8 +288,9 @@ class SimulatorConfig:
         return dataclasses.replace(self, **kw)
 
     def with_compressor_family(self, name: str) -> "SimulatorConfig":
-        """This config with the hidden compressors of family ``name`` (a key of
-        compressor_families, or "perturbed" for plant.yaml's perturbed polynomials)."""
+        """This config with the hidden compressors of family ``name``: a key of
+        compressor_families, "perturbed" (plant.yaml's polynomials perturbed by truth.compressors.LS
+        and HS, the default) or "nominal" (plant.yaml's polynomials exactly)."""
         check_family(name, self.compressor_families, f"{self.path or '<simulator config>'}: "
                                                       "truth.compressors")
         return self.replace(truth=dataclasses.replace(self.truth, compressor_family=name))
@@ -454,8 +457,9 @@ def _families(d, where: str) -> dict:
     out = {}
     for name, fam in d.items():
         w = f"{where}: compressor_families.{name}"
-        if str(name) == PERTURBED:
-            raise SimConfigError(f"{w}: the name '{PERTURBED}' is reserved (truth.compressors.LS/HS)")
+        if str(name) in RESERVED_FAMILIES:
+            raise SimConfigError(f"{w}: the name '{name}' is reserved ({PERTURBED}: plant.yaml's curves "
+                                 f"perturbed by truth.compressors.LS/HS; {NOMINAL}: plant.yaml's curves)")
         if not isinstance(fam, dict) or set(fam) != {"LS", "HS"}:
             raise SimConfigError(f"{w}: expected the keys LS and HS")
         stages = {}
@@ -485,8 +489,8 @@ def _families(d, where: str) -> dict:
 
 
 def check_family(name, families: dict, where: str) -> None:
-    if name != PERTURBED and name not in families:
-        known = ", ".join([PERTURBED] + sorted(families))
+    if name not in RESERVED_FAMILIES and name not in families:
+        known = ", ".join(list(RESERVED_FAMILIES) + sorted(families))
         raise SimConfigError(f"{where}: key 'family': unknown compressor family {name!r} "
                              f"(known: {known})")
 

@@ -39,7 +39,7 @@ from model.params import Compressor, CycleInputs, PlantParams
 from model.units import BAR, M3H, T0
 
 from .compressors import curve_envelope, shaped_from
-from .config import PERTURBED, FlowCfg, SimConfigError, SimulatorConfig, load_simulator_config
+from .config import NOMINAL, PERTURBED, FlowCfg, SimConfigError, SimulatorConfig, load_simulator_config
 from .profiles import DAY, Boundary, CipSchedule, Fouling, Profiles
 from .sensors import LSController, sensor_values
 
@@ -87,14 +87,17 @@ def true_params(nominal: PlantParams, cfg: SimulatorConfig) -> PlantParams:
 
 def true_compressors(nominal: PlantParams, cfg: SimulatorConfig) -> dict[str, Compressor]:
     """{"LS": ..., "HS": ...}: the plant's real compressors. Family "perturbed": plant.yaml's
-    polynomials with eta' = scale*eta + pi_tilt*(pi - 2.5) + n_tilt*(n - 1); any other family:
-    a ShapedCompressor with the family's parameters (same swept volume and speed range)."""
+    polynomials with eta' = scale*eta + pi_tilt*(pi - 2.5) + n_tilt*(n - 1); "nominal":
+    plant.yaml's polynomials; any other: a ShapedCompressor with the family's parameters (same
+    swept volume and speed range)."""
     t = cfg.truth
     family = t.compressor_family
     out: dict[str, Compressor] = {}
     for name in ("LS", "HS"):
         comp = getattr(nominal, f"comp_{name}")
-        if family == PERTURBED:
+        if family == NOMINAL:
+            pass
+        elif family == PERTURBED:
             ct = t.compressors.get(name)
             if ct is not None:
                 ei = [ct.eta_is_scale * c for c in comp.eta_is]

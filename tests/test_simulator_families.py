@@ -120,10 +120,10 @@ def test_selection_from_python_yaml_and_errors(tmp_path):
     cfg = config_from_dict(doc, tmp_path / "simulator.yaml")
     assert cfg.truth.compressor_family == "speed_peak"
     with pytest.raises(SimConfigError, match=r"simulator.yaml: truth.compressors: key 'family': "
-                                             r"unknown compressor family 'nope' \(known: perturbed\)"):
+                                             r"unknown compressor family 'nope' \(known: perturbed, nominal\)"):
         config_from_dict({"truth": {"compressors": {"family": "nope"}}}, tmp_path / "simulator.yaml")
     with pytest.raises(SimConfigError, match=r"truth.compressors: key 'family': unknown compressor "
-                                             r"family 'fast' \(known: perturbed, low_peak, ratio_only, speed_peak\)"):
+                                             r"family 'fast' \(known: perturbed, nominal, low_peak, ratio_only, speed_peak\)"):
         CFG.with_compressor_family("fast")
     with pytest.raises(SimConfigError, match=r"compressor_families.x.HS: unknown key 'eta_max'"):
         config_from_dict({"compressor_families": {"x": {"LS": {}, "HS": {"eta_max": 0.8}}}},

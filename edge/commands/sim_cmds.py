@@ -22,8 +22,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
     p.add_argument("--compressors", default=None, metavar="FAMILY",
                    help="the plant's hidden compressor curves: perturbed (plant.yaml's polynomials "
-                        "perturbed, the default) or a family of simulator.yaml's "
-                        "compressor_families (ratio_only, speed_peak, low_peak)")
+                        "perturbed, the default), nominal (plant.yaml's polynomials) or a family of "
+                        "simulator.yaml's compressor_families (ratio_only, speed_peak, low_peak)")
     p.add_argument("--truth-log", default=None, metavar="FILE",
                    help="append the hidden truth (JSON lines) once per plant minute")
     p.add_argument("--fault", action="append", default=[], metavar="SPEC",

@@ -77,6 +77,7 @@ class WindowPoint:
     p_c_barg: np.ndarray
     hs_saturated: np.ndarray    # per minute: HS at its maximum speed, p_m floating
     ls_limit: list              # per minute: "" | "max" | "min"
+    T_source_out_C: np.ndarray  # per minute: at its set point, or floating at an LS speed bound
 
 
 class TruthModel:
@@ -188,12 +189,13 @@ class TruthWindow:
         W = np.empty(n)
         p_m, p_e, p_c = np.empty(n), np.empty(n), np.empty(n)
         sat = np.zeros(n, dtype=bool)
+        T_out = np.empty(n)
         limits = []
         self.evaluations += 1
         for i, (row, sp) in enumerate(zip(sel, sps)):
             inp = row.inputs.replace(p_m_sp=(self.clamp(sp) + amb) * BAR)
             try:
-                res, _, limit = row.ls.solve(inp, row.params, row.guess)
+                res, T_out[i], limit = row.ls.solve(inp, row.params, row.guess)
             except (ModelError, ValueError) as exc:
                 row.ls.T_out_float = None
                 msg = (f"minute {row.label} cannot run at p_m,sp {sp:.3f} bar(g): "
@@ -209,7 +211,7 @@ class TruthWindow:
             sat[i] = res.hs_saturated
             limits.append(limit)
         pt = WindowPoint(math.nan if own else sps[0], float(Q.sum() / W.sum()),
-                         float(Q.mean()), float(W.mean()), p_m, p_e, p_c, sat, limits)
+                         float(Q.mean()), float(W.mean()), p_m, p_e, p_c, sat, limits, T_out - T0)
         if key is not None:
             self._cache[key] = pt
         return pt

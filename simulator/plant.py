@@ -448,7 +448,7 @@ class Plant:
             "T_source_out_sp_C": self.cfg.control.T_source_out_sp_C,
             "p_m_sp_solved_bar_g": sp.p_m_sp_bar_g,
             "compressor_family": self.cfg.truth.compressor_family,
-            "cip_pending": int(self.cip_pending),
+            "cip_pending": int(self.cip_pending), "cip_requests": self.cip_requests,
         }
         r = sp.res
         if r is not None and self.running:

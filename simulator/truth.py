@@ -109,6 +109,12 @@ class TruthModel:
                              "with this version of the simulator)")
         if not max_rows >= 1:
             raise TruthError(f"max_rows must be >= 1, got {max_rows}")
+        family = self.cfg.truth.compressor_family
+        if "compressor_family" in df.columns:
+            seen = sorted(set(df["compressor_family"].dropna().astype(str)) - {family})
+            if seen:
+                raise TruthError(f"truth rows come from compressor family {seen[0]!r}, this model is "
+                                 f"{family!r}: build it with cfg.with_compressor_family({seen[0]!r})")
         vals = df[list(REQUIRED)].apply(pd.to_numeric, errors="coerce")
         ok = (vals["running"] == 1) & np.isfinite(vals.to_numpy(dtype=float)).all(axis=1)
         if "cip" in df.columns:

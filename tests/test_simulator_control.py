@@ -175,6 +175,7 @@ def test_cip_on_request_on_the_plant():
     assert p.running and p.cip_count == 1
     log = p.cip_log[0]
     assert log["requested"] is True and log["end"] - log["start"] == pytest.approx(0.02 * DAY)
+    assert p.truth()["cip_requests"] == 1
     assert log["R_th_f_before_K_per_kW"] == R_before and log["CF_dp_f_before"] == CF_before
     assert log["R_th_f_after_K_per_kW"] == pytest.approx(R_before * (1 - cfg.cip.removal_share), rel=1e-12)
     assert log["CF_dp_f_after"] - 1 == pytest.approx((CF_before - 1) * (1 - cfg.cip.dp_removal_share), rel=1e-12)

@@ -116,6 +116,9 @@ def test_errors_are_clear(history):
     tm = TruthModel(cfg)
     with pytest.raises(TruthError, match=r"truth rows lack the column\(s\) V_sink_m3h, running"):
         tm.window(truth.drop(columns=["V_sink_m3h", "running"]))
+    with pytest.raises(TruthError, match=r"truth rows come from compressor family 'speed_peak', this "
+                                         r"model is 'perturbed'"):
+        TruthModel(CFG).window(truth.iloc[:10])
     stopped = truth.iloc[:10].assign(running=0)
     with pytest.raises(TruthError, match="the window has no running minute"):
         tm.window(stopped)

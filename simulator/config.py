@@ -144,6 +144,11 @@ class CompressorTruth:
     eta_vol_n_tilt: float = 0.0
 
 
+PERTURBED = "perturbed"      # truth.compressors.family: plant.yaml's polynomials perturbed (LS/HS)
+NOMINAL = "nominal"          # ... plant.yaml's polynomials exactly (the model's own curves)
+RESERVED_FAMILIES = (PERTURBED, NOMINAL)
+
+
 @dataclass(frozen=True)
 class TruthCfg:
     CF_eva: float = 1.0
@@ -152,6 +157,7 @@ class TruthCfg:
     CF_SC: float = 1.0
     motor_efficiency: float = 1.0
     compressors: dict = field(default_factory=dict)   # "LS"/"HS" -> CompressorTruth
+    compressor_family: str = PERTURBED                # or a key of compressor_families
 
 
 @dataclass(frozen=True)
@@ -173,14 +179,19 @@ class FoulingCfg:
     tau_dp_days: float = 20.0
 
 
+CIP_MODES = ("schedule", "on_request")
+
+
 @dataclass(frozen=True)
 class CipCfg:
+    mode: str = "schedule"             # schedule | on_request (Plant.request_cip / request register)
     first_after_days: float = 9.0
     interval_days: float = 14.0
     jitter_days: float = 1.0
     duration_days: float = 2.5
     removal_share: float = 0.15
     dp_removal_share: float = 0.30
+    request_register: int | None = None   # holding address a client writes 1 to (on_request mode)
 
 
 @dataclass(frozen=True)
@@ -189,6 +200,15 @@ class ControlCfg:
     p_m_sp_bar_g: float = 16.0
     p_m_sp_limits_bar_g: tuple = (4.0, 35.0)
     standstill_T_C: float = 20.0
+    p_m_sp_schedule: tuple = ()        # ((from_day, bar_g), ...): the PLC's own set-point steps
+
+
+T_C_LOCATIONS = ("condenser_outlet", "subcooler_outlet")
+
+
+@dataclass(frozen=True)
+class SensorsCfg:
+    T_c: str = "condenser_outlet"      # where the "condenser outlet" T_c sensor sits
 
 
 @dataclass(frozen=True)
@@ -259,11 +279,36 @@ class SimulatorConfig:
     control: ControlCfg = ControlCfg()
     profiles: ProfileCfg = ProfileCfg()
     lags_s: LagCfg = LagCfg()
+    sensors: SensorsCfg = SensorsCfg()
     noise: dict = field(default_factory=dict)       # tag -> sigma [engineering unit]
     faults: tuple = ()                              # FaultSpec
+    compressor_families: dict = field(default_factory=dict)   # name -> {"LS": {...}, "HS": {...}}
 
     def replace(self, **kw) -> "SimulatorConfig":
         return dataclasses.replace(self, **kw)
+
+    def with_compressor_family(self, name: str) -> "SimulatorConfig":
+        """This config with the hidden compressors of family ``name``: a key of
+        compressor_families, "perturbed" (plant.yaml's polynomials perturbed by truth.compressors.LS
+        and HS, the default) or "nominal" (plant.yaml's polynomials exactly)."""
+        check_family(name, self.compressor_families, f"{self.path or '<simulator config>'}: "
+                                                      "truth.compressors")
+        return self.replace(truth=dataclasses.replace(self.truth, compressor_family=name))
+
+    def with_sections(self, **sections) -> "SimulatorConfig":
+        """This config with some keys of some sections changed, checked like a loaded file:
+        ``cfg.with_sections(cip={"mode": "on_request"}, sensors={"T_c": "subcooler_outlet"})``."""
+        kw = {}
+        for name, changes in sections.items():
+            current = getattr(self, name)
+            if not dataclasses.is_dataclass(current):
+                raise SimConfigError(f"<simulator config>: '{name}' is not a section")
+            doc = {f.name: getattr(current, f.name) for f in dataclasses.fields(current)}
+            doc.update(changes)
+            kw[name] = _section(name, doc, f"<simulator config>: {name}")
+        cfg = self.replace(**kw)
+        _check(cfg, "<simulator config>")
+        return cfg
 
     @property
     def start_epoch(self) -> float:
@@ -276,7 +321,9 @@ class SimulatorConfig:
 
 
 _SECTIONS = {"time": TimeCfg, "flow_dependence": FlowCfg, "fouling": FoulingCfg, "cip": CipCfg,
-             "control": ControlCfg, "profiles": ProfileCfg, "lags_s": LagCfg}
+             "control": ControlCfg, "profiles": ProfileCfg, "lags_s": LagCfg, "sensors": SensorsCfg}
+FAMILY_KEYS = ("eta_is_max", "eta_is_floor", "pi_opt", "w_ln_pi", "n_opt", "w_n",
+               "vol_a", "vol_b", "vol_k", "vol_c")     # simulator.compressors.STAGE_KEYS
 
 
 def load_simulator_config(path: str | Path | None = None) -> SimulatorConfig:
@@ -313,16 +360,28 @@ def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
     if "ambient_pressure_bar" in doc:
         kw["ambient_pressure_bar"] = _number(doc["ambient_pressure_bar"],
                                              f"{where}: key 'ambient_pressure_bar'")
-    for key, cls in _SECTIONS.items():
+    for key in _SECTIONS:
         if key in doc:
-            kw[key] = _dataclass_from(cls, doc[key], f"{where}: {key}")
+            kw[key] = _section(key, doc[key], f"{where}: {key}")
+    if "compressor_families" in doc:
+        kw["compressor_families"] = _families(doc["compressor_families"] or {}, where)
     if "truth" in doc:
-        t = dict(doc["truth"] or {})
+        t = doc["truth"] or {}
+        if not isinstance(t, dict):
+            raise SimConfigError(f"{where}: truth: expected a mapping")
+        t = dict(t)
         comps = t.pop("compressors", {}) or {}
+        if "compressor_family" in t:
+            raise SimConfigError(f"{where}: truth: unknown key 'compressor_family' "
+                                 "(the family is truth.compressors.family)")
         truth = _dataclass_from(TruthCfg, t, f"{where}: truth")
-        if not isinstance(comps, dict) or set(comps) - {"LS", "HS"}:
-            raise SimConfigError(f"{where}: truth: key 'compressors' takes LS and HS only")
-        kw["truth"] = dataclasses.replace(truth, compressors={
+        if not isinstance(comps, dict) or set(comps) - {"LS", "HS", "family"}:
+            raise SimConfigError(f"{where}: truth: key 'compressors' takes family, LS and HS only")
+        comps = dict(comps)
+        family = comps.pop("family", PERTURBED)
+        family = PERTURBED if family is None else family
+        check_family(family, kw.get("compressor_families", {}), f"{where}: truth.compressors")
+        kw["truth"] = dataclasses.replace(truth, compressor_family=str(family), compressors={
             k: _dataclass_from(CompressorTruth, v, f"{where}: truth.compressors.{k}")
             for k, v in comps.items()})
     if "noise" in doc:
@@ -338,6 +397,102 @@ def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
     cfg = SimulatorConfig(**kw)
     _check(cfg, where)
     return cfg
+
+
+def _section(key: str, d, where: str):
+    """One section of simulator.yaml -> its dataclass, with the keys that need more than a
+    number checked here (the CIP mode and request register, the set-point schedule, sensors)."""
+    if key == "cip" and isinstance(d, dict):
+        d = dict(d)
+        reg = d.pop("request_register", None)
+        mode = d.pop("mode", "schedule")
+        cfg = _dataclass_from(CipCfg, d, where)
+        if mode not in CIP_MODES:
+            raise SimConfigError(f"{where}: key 'mode' must be one of {', '.join(CIP_MODES)}, got {mode!r}")
+        if reg is not None and (not isinstance(reg, int) or isinstance(reg, bool) or not 0 <= reg <= 65535):
+            raise SimConfigError(f"{where}: key 'request_register' must be a holding address 0..65535")
+        return dataclasses.replace(cfg, mode=mode, request_register=reg)
+    if key == "control" and isinstance(d, dict):
+        d = dict(d)
+        sched = d.pop("p_m_sp_schedule", ()) or ()
+        cfg = _dataclass_from(ControlCfg, d, where)
+        return dataclasses.replace(cfg, p_m_sp_schedule=_schedule(sched, cfg, where))
+    if key == "sensors" and isinstance(d, dict):
+        cfg = _dataclass_from(SensorsCfg, d, where)
+        if cfg.T_c not in T_C_LOCATIONS:
+            raise SimConfigError(f"{where}: key 'T_c' must be one of {', '.join(T_C_LOCATIONS)}, "
+                                 f"got {cfg.T_c!r}")
+        return cfg
+    return _dataclass_from(_SECTIONS[key], d, where)
+
+
+def _schedule(items, control: ControlCfg, where: str) -> tuple:
+    """control.p_m_sp_schedule: [[from_day, bar_g], ...], from_day >= 0 and rising, set points
+    inside p_m_sp_limits_bar_g (a schedule is not clamped like a client write: it is checked)."""
+    what = f"{where}: key 'p_m_sp_schedule'"
+    if not isinstance(items, (list, tuple)):
+        raise SimConfigError(f"{what} must be a list of [from_day, bar_g] pairs")
+    lo, hi = control.p_m_sp_limits_bar_g
+    out, last = [], -math.inf
+    for i, item in enumerate(items):
+        if not (isinstance(item, (list, tuple)) and len(item) == 2):
+            raise SimConfigError(f"{what}: entry {i} must be a [from_day, bar_g] pair, got {item!r}")
+        day = _number(item[0], f"{what}: entry {i} from_day")
+        bar = _number(item[1], f"{what}: entry {i} bar_g")
+        if day < 0 or day <= last:
+            raise SimConfigError(f"{what}: entry {i}: from_day must be >= 0 and rise from entry "
+                                 f"to entry, got {day:g}")
+        if not lo <= bar <= hi:
+            raise SimConfigError(f"{what}: entry {i}: set point {bar:g} bar(g) is outside "
+                                 f"p_m_sp_limits_bar_g [{lo:g}, {hi:g}]")
+        out.append((day, bar))
+        last = day
+    return tuple(out)
+
+
+def _families(d, where: str) -> dict:
+    """compressor_families: NAME -> {LS: {...}, HS: {...}} with the keys of FAMILY_KEYS."""
+    if not isinstance(d, dict):
+        raise SimConfigError(f"{where}: key 'compressor_families' must map a family name to LS and HS")
+    out = {}
+    for name, fam in d.items():
+        w = f"{where}: compressor_families.{name}"
+        if str(name) in RESERVED_FAMILIES:
+            raise SimConfigError(f"{w}: the name '{name}' is reserved ({PERTURBED}: plant.yaml's curves "
+                                 f"perturbed by truth.compressors.LS/HS; {NOMINAL}: plant.yaml's curves)")
+        if not isinstance(fam, dict) or set(fam) != {"LS", "HS"}:
+            raise SimConfigError(f"{w}: expected the keys LS and HS")
+        stages = {}
+        for stage in ("LS", "HS"):
+            s = fam[stage]
+            ws = f"{w}.{stage}"
+            if not isinstance(s, dict):
+                raise SimConfigError(f"{ws}: expected a mapping")
+            unknown = set(s) - set(FAMILY_KEYS)
+            if unknown:
+                raise SimConfigError(f"{ws}: unknown key '{sorted(unknown)[0]}'")
+            vals = {}
+            for k, v in s.items():
+                if k == "n_opt" and v is None:
+                    vals[k] = None
+                    continue
+                vals[k] = _number(v, f"{ws}: key '{k}'")
+            for k in ("w_ln_pi", "w_n", "vol_k", "pi_opt"):
+                if k in vals and not vals[k] > 0:
+                    raise SimConfigError(f"{ws}: key '{k}' must be > 0")
+            for k in ("eta_is_max", "eta_is_floor"):
+                if k in vals and not 0.05 < vals[k] <= 1.0:
+                    raise SimConfigError(f"{ws}: key '{k}' must be within (0.05, 1]")
+            stages[stage] = vals
+        out[str(name)] = stages
+    return out
+
+
+def check_family(name, families: dict, where: str) -> None:
+    if name not in RESERVED_FAMILIES and name not in families:
+        known = ", ".join(list(RESERVED_FAMILIES) + sorted(families))
+        raise SimConfigError(f"{where}: key 'family': unknown compressor family {name!r} "
+                             f"(known: {known})")
 
 
 def fault_from_dict(d: dict, where: str = "fault") -> FaultSpec:
@@ -367,8 +522,12 @@ def _check(cfg: SimulatorConfig, where: str) -> None:
     for name in ("removal_share", "dp_removal_share"):
         if not 0.0 <= getattr(cfg.cip, name) <= 1.0:
             raise SimConfigError(f"{where}: cip: key '{name}' must be within 0..1")
-    if cfg.cip.interval_days <= cfg.cip.duration_days + 2 * cfg.cip.jitter_days:
+    if cfg.cip.mode == "schedule" and cfg.cip.interval_days <= cfg.cip.duration_days + 2 * cfg.cip.jitter_days:
         raise SimConfigError(f"{where}: cip: key 'interval_days' must exceed duration + 2 jitter")
+    if cfg.cip.mode != "on_request" and cfg.cip.request_register is not None:
+        raise SimConfigError(f"{where}: cip: key 'request_register' applies to mode on_request only")
+    if not cfg.cip.duration_days > 0:
+        raise SimConfigError(f"{where}: cip: key 'duration_days' must be > 0")
     lo, hi = cfg.control.p_m_sp_limits_bar_g
     if not lo < hi:
         raise SimConfigError(f"{where}: control: key 'p_m_sp_limits_bar_g' must be [low, high]")
@@ -413,7 +572,7 @@ def _dataclass_from(cls, d, where: str, required: tuple = ()):
     for key, v in d.items():
         default = fields[key].default
         if isinstance(default, tuple):
-            if not (isinstance(v, list) and len(v) == len(default)):
+            if not (isinstance(v, (list, tuple)) and len(v) == len(default)):
                 raise SimConfigError(f"{where}: key '{key}' must be a list of {len(default)} numbers")
             kw[key] = tuple(_number(x, f"{where}: key '{key}'") for x in v)
         elif isinstance(default, float) or (default is None and key not in ("tag", "kind")):

@@ -11,16 +11,18 @@ What the plant is and the model is not (on purpose; calibration must cope):
 - fouling (Kern-Seaton) and a growing source pressure-drop factor, partially removed by each CIP;
 - lags, noise, and the register types' quantization (applied by the server / export).
 
-Sensor mapping from the model state (documented choices):
-  T_suc_LS = T_e + superheat at p_e ('LS_suc'); T_dis_LS = 'LS_dis'; T_suc_HS = saturated vapour at
-  p_m ('HS_suc'); T_dis_HS = 'HS_dis'; T_c = condenser outlet, saturated liquid at p_c ('con_out',
-  i.e. the SC inlet, not the SC outlet); T_e = saturation temperature at p_e; p_suc_LS = p_e,
-  p_dis_LS = p_suc_HS = p_m, p_dis_HS = p_c (gauge, with ambient_pressure_bar);
-  W_LS/W_HS = shaft power / truth.motor_efficiency [kW];
-  p_source_out = p_source_in - dp_source.
-Controllers: LS speed holds T_source,out at its set point; at 1800 (700) rpm T_source,out floats
-above (below) it, found by a 1-D root search; HS speed holds p_m at the set-point register, p_m
-floats above it at 1800 rpm (the model's hs_max branch).
+Sensor mapping and the LS controller: simulator/sensors.py (shared with the synthetic histories
+and the truth evaluator). HS speed holds p_m at the set-point register, p_m floats above it at
+1800 rpm (the model's hs_max branch). The set point follows the register, and the PLC's own
+schedule (control.p_m_sp_schedule) when one is configured.
+
+Compressors: plant.yaml's polynomials perturbed (truth.compressors.LS/HS), or a family of another
+shape (truth.compressors.family, simulator/compressors.py).
+
+CIPs: scheduled (cip.mode: schedule) or on request (cip.mode: on_request, ``request_cip()``).
+
+Step-by-step use from Python (no server): ``Plant.tick()`` / ``advance_to(t)``; the one-minute rows
+export_history writes come from ``simulator.export.MinuteStepper``.
 """
 from __future__ import annotations
 
@@ -30,15 +32,16 @@ from datetime import datetime, timezone
 
 import numpy as np
 import yaml
-from scipy.optimize import brentq
 
-from model.cycle import ConvergenceError, InfeasibleOperation, ModelError, solve
+from model.cycle import ModelError
 from model.fluid import get_fluid
-from model.params import CycleInputs, PlantParams
+from model.params import Compressor, CycleInputs, PlantParams
 from model.units import BAR, M3H, T0
 
-from .config import SimulatorConfig, load_simulator_config
-from .profiles import Boundary, CipSchedule, Fouling, Profiles
+from .compressors import curve_envelope, shaped_from
+from .config import NOMINAL, PERTURBED, FlowCfg, SimConfigError, SimulatorConfig, load_simulator_config
+from .profiles import DAY, Boundary, CipSchedule, Fouling, Profiles
+from .sensors import LSController, sensor_values
 
 # plant-provided measurement tags (SPEC §4 canonical names) and their lag class
 MEASURED = (
@@ -57,7 +60,6 @@ MEASURED = (
 NAMES = tuple(n for n, _ in MEASURED)
 INDEX = {n: i for i, n in enumerate(NAMES)}
 FLAGS = ("running", "cip")
-N_TOL = 0.3          # rpm: LS speed at its bound, T_source_out floating
 
 
 @dataclass
@@ -67,6 +69,7 @@ class SteadyPoint:
     res: object | None          # model CycleResult (None when stopped or failed)
     T_source_out_C: float
     ls_limit: str               # "" | "max" | "min": LS at a speed bound, T_source_out floating
+    p_m_sp_bar_g: float = math.nan   # the set point this state was solved at
 
 
 def load_params(cfg: SimulatorConfig) -> PlantParams:
@@ -77,21 +80,50 @@ def load_params(cfg: SimulatorConfig) -> PlantParams:
 def true_params(nominal: PlantParams, cfg: SimulatorConfig) -> PlantParams:
     """Nominal parameters with the hidden truth applied (fouling and flow effects come later)."""
     t = cfg.truth
-    comps = {}
+    comps = true_compressors(nominal, cfg)
+    return nominal.replace(CF_eva=t.CF_eva, CF_con=t.CF_con, CF_DSH=t.CF_DSH, CF_SC=t.CF_SC,
+                           R_th_f=0.0, CF_dp_f=1.0, comp_LS=comps["LS"], comp_HS=comps["HS"])
+
+
+def true_compressors(nominal: PlantParams, cfg: SimulatorConfig) -> dict[str, Compressor]:
+    """{"LS": ..., "HS": ...}: the plant's real compressors. Family "perturbed": plant.yaml's
+    polynomials with eta' = scale*eta + pi_tilt*(pi - 2.5) + n_tilt*(n - 1); "nominal":
+    plant.yaml's polynomials; any other: a ShapedCompressor with the family's parameters (same
+    swept volume and speed range)."""
+    t = cfg.truth
+    family = t.compressor_family
+    out: dict[str, Compressor] = {}
     for name in ("LS", "HS"):
         comp = getattr(nominal, f"comp_{name}")
-        ct = t.compressors.get(name)
-        if ct is not None:
-            ei = [ct.eta_is_scale * c for c in comp.eta_is]
-            ei[0] -= 2.5 * ct.eta_is_pi_tilt      # + tilt*(pi - 2.5)
-            ei[1] += ct.eta_is_pi_tilt
-            ev = [ct.eta_vol_scale * c for c in comp.eta_vol]
-            ev[0] -= ct.eta_vol_n_tilt            # + tilt*(n - 1)
-            ev[2] += ct.eta_vol_n_tilt
-            comp = comp.replace(eta_is=tuple(ei), eta_vol=tuple(ev))
-        comps[f"comp_{name}"] = comp
-    return nominal.replace(CF_eva=t.CF_eva, CF_con=t.CF_con, CF_DSH=t.CF_DSH, CF_SC=t.CF_SC,
-                           R_th_f=0.0, CF_dp_f=1.0, **comps)
+        if family == NOMINAL:
+            pass
+        elif family == PERTURBED:
+            ct = t.compressors.get(name)
+            if ct is not None:
+                ei = [ct.eta_is_scale * c for c in comp.eta_is]
+                ei[0] -= 2.5 * ct.eta_is_pi_tilt      # + tilt*(pi - 2.5)
+                ei[1] += ct.eta_is_pi_tilt
+                ev = [ct.eta_vol_scale * c for c in comp.eta_vol]
+                ev[0] -= ct.eta_vol_n_tilt            # + tilt*(n - 1)
+                ev[2] += ct.eta_vol_n_tilt
+                comp = comp.replace(eta_is=tuple(ei), eta_vol=tuple(ev))
+        else:
+            where = f"{cfg.path or '<simulator config>'}: compressor_families.{family}.{name}"
+            try:
+                comp = shaped_from(comp, family, cfg.compressor_families[family][name])
+            except KeyError as exc:
+                raise SimConfigError(f"{where}: unknown key {exc}") from None
+            env = curve_envelope(comp, rpm_range=(comp.N_min, comp.N_max))
+            if not (env["flow_slope_min"] > 0 and 0.05 < env["eta_is_min"] and env["eta_is_max"] <= 1.0
+                    and 0.0 < env["eta_vol_min"] and env["eta_vol_max"] <= 1.0):
+                raise SimConfigError(
+                    f"{where}: the curves are not physical over pressure ratio 1.5-4 and "
+                    f"{comp.N_min:.0f}-{comp.N_max:.0f} rpm (eta_is {env['eta_is_min']:.3f}.."
+                    f"{env['eta_is_max']:.3f}, eta_vol {env['eta_vol_min']:.3f}..{env['eta_vol_max']:.3f}, "
+                    f"lowest flow slope {env['flow_slope_min']:.3f}; need 0.05 < eta_is <= 1, "
+                    f"0 < eta_vol <= 1 and a flow rising with speed)")
+        out[name] = comp
+    return out
 
 
 def flow_factor(V: float, V_nom: float, share: float, exponent: float) -> float:
@@ -101,12 +133,25 @@ def flow_factor(V: float, V_nom: float, share: float, exponent: float) -> float:
     return 1.0 / (share * (V_nom / V) ** exponent + 1.0 - share)
 
 
+def effective_params(true: PlantParams, flow: FlowCfg, V_source_m3h: float, V_sink_m3h: float,
+                     R_th_f_K_per_kW: float, CF_dp_f: float) -> PlantParams:
+    """What the plant really is at these water flows [m3/h] and this fouling: the true parameters
+    with the flow-dependent heat-transfer factors (model-form discrepancy) and the fouling."""
+    g_eva = flow_factor(V_source_m3h, flow.V_source_nom_m3h, flow.water_side_share_eva, flow.exponent)
+    g_con = flow_factor(V_sink_m3h, flow.V_sink_nom_m3h, flow.water_side_share_con, flow.exponent)
+    return true.replace(CF_eva=true.CF_eva * g_eva, CF_con=true.CF_con * g_con,
+                        CF_DSH=true.CF_DSH * g_con, CF_SC=true.CF_SC * g_con,
+                        R_th_f=R_th_f_K_per_kW * 1e-3, CF_dp_f=CF_dp_f)
+
+
 class Plant:
     """The hidden plant. ``tick()`` advances one tick; ``advance_to(t)`` as many as needed.
 
     After each tick ``measured`` holds every sensor (engineering units, with noise, before the
     register quantization and before faults), ``flags`` running/cip, ``p_m_sp_bar_g`` the set point.
     ``truth_records`` collects one hidden-truth dict per truth interval (drained by the caller).
+    ``set_p_m_sp(bar_g)`` is a client write; ``request_cip()`` asks for a CIP (cip.mode on_request);
+    ``cip_log`` lists every CIP (start, end, fouling before and after, requested or scheduled).
     Not thread-safe: one caller at a time (the server steps it in one worker thread).
     """
 
@@ -125,11 +170,20 @@ class Plant:
         self._truth_every = max(1, round(cfg.time.truth_interval_s / self.dt))
         self.profiles = Profiles(cfg.profiles, np.random.default_rng(weather_ss), self.t0)
         self.fouling = Fouling(cfg.fouling)
-        self.cip_schedule = CipSchedule(cfg.cip, np.random.default_rng(cip_ss), self.t0)
+        self.cip_schedule = (CipSchedule(cfg.cip, np.random.default_rng(cip_ss), self.t0)
+                             if cfg.cip.mode == "schedule" else None)
         self.cip_window: tuple[float, float] | None = None
         self.cip_count = 0
+        self.cip_pending = False                      # requested, starts at the next tick
+        self.cip_requests = 0
+        self.cip_log: list[dict] = []
         self.running = True
         self.p_m_sp_bar_g = cfg.control.p_m_sp_bar_g
+        self._sp_schedule = [(self.t0 + day * DAY, bar) for day, bar in cfg.control.p_m_sp_schedule]
+        self._sp_next = 0
+        self.sp_steps = 0                             # schedule steps applied (the server follows)
+        self._apply_sp_schedule(self.t0)
+        self.ls = LSController()
         self.boundary: Boundary = self.profiles.advance(self.t0)
         lag = cfg.lags_s
         self._alpha = np.array([math.exp(-self.dt / getattr(lag, c)) if getattr(lag, c) > 0 else 0.0
@@ -138,7 +192,6 @@ class Plant:
         self.solve_failures = 0
         self.last_error = ""
         self._guess = None
-        self._T_out_float: float | None = None
         self._opt_cache: tuple[int, dict] | None = None
         self.truth_records: list[dict] = []
         self.steady = self._steady_state()
@@ -166,6 +219,28 @@ class Plant:
         v = min(max(float(bar_g), lo), hi) if math.isfinite(bar_g) else self.p_m_sp_bar_g
         self.p_m_sp_bar_g = v
         return v
+
+    def request_cip(self) -> bool:
+        """Ask for a CIP (cip.mode on_request): it starts at the next tick, with the configured
+        duration and removal shares. Returns False (and changes nothing) when a CIP is already
+        in progress or pending. RuntimeError in cip.mode schedule (the PLC cleans by its own
+        schedule there)."""
+        if self.cfg.cip.mode != "on_request":
+            raise RuntimeError("CIP on request needs cip.mode: on_request in the simulator config "
+                               f"(it is {self.cfg.cip.mode!r})")
+        if self.cip_window is not None or self.cip_pending:
+            return False
+        self.cip_pending = True
+        self.cip_requests += 1
+        return True
+
+    def _apply_sp_schedule(self, t: float) -> None:
+        """The PLC's own set-point steps that are due at plant time t (each applied once, so a
+        client write in between holds until the next step)."""
+        while self._sp_next < len(self._sp_schedule) and t >= self._sp_schedule[self._sp_next][0] - 1e-9:
+            self.set_p_m_sp(self._sp_schedule[self._sp_next][1])
+            self._sp_next += 1
+            self.sp_steps += 1
 
     def advance_to(self, t: float, max_ticks: int | None = None) -> int:
         """Tick until plant time reaches t (at most max_ticks); returns the ticks done."""
@@ -203,8 +278,19 @@ class Plant:
         return dict(zip(NAMES, self.noisy.tolist()))
 
     def _events(self, t: float) -> None:
-        if self.cip_window is None and t >= self.cip_schedule.next_start:
-            self.cip_window = self.cip_schedule.pop()
+        self._apply_sp_schedule(t)
+        start = None
+        if self.cip_window is None:
+            if self.cip_schedule is not None and t >= self.cip_schedule.next_start:
+                start = self.cip_schedule.pop()
+            elif self.cip_pending:
+                start = (t, t + self.cfg.cip.duration_days * DAY)
+        if start is not None:
+            self.cip_window = start
+            self.cip_log.append({"start": start[0], "end": start[1], "requested": self.cip_pending,
+                                 "R_th_f_before_K_per_kW": self.fouling.R,
+                                 "CF_dp_f_before": self.fouling.CF_dp})
+            self.cip_pending = False
             self.running = False
             self.steady = self._steady_state()
             # compressors and pumps stop at once; temperatures and pressures settle through the lags
@@ -212,6 +298,8 @@ class Plant:
         elif self.cip_window is not None and t >= self.cip_window[1]:
             c = self.cfg.cip
             self.fouling.clean(c.removal_share, c.dp_removal_share)
+            self.cip_log[-1].update({"R_th_f_after_K_per_kW": self.fouling.R,
+                                     "CF_dp_f_after": self.fouling.CF_dp})
             self.cip_window = None
             self.cip_count += 1
             self.running = True
@@ -225,13 +313,8 @@ class Plant:
     # ----------------------------------------------------------------------- steady state ----
     def effective_params(self, V_source_m3h: float, V_sink_m3h: float) -> PlantParams:
         """True parameters at these flows and the present fouling (what the plant really is now)."""
-        f = self.cfg.flow_dependence
-        g_eva = flow_factor(V_source_m3h, f.V_source_nom_m3h, f.water_side_share_eva, f.exponent)
-        g_con = flow_factor(V_sink_m3h, f.V_sink_nom_m3h, f.water_side_share_con, f.exponent)
-        tr = self.true
-        return tr.replace(CF_eva=tr.CF_eva * g_eva, CF_con=tr.CF_con * g_con,
-                          CF_DSH=tr.CF_DSH * g_con, CF_SC=tr.CF_SC * g_con,
-                          R_th_f=self.fouling.R * 1e-3, CF_dp_f=self.fouling.CF_dp)
+        return effective_params(self.true, self.cfg.flow_dependence, V_source_m3h, V_sink_m3h,
+                                self.fouling.R, self.fouling.CF_dp)
 
     def inputs(self, b: Boundary, T_source_out_C: float | None = None,
                p_m_sp_bar_g: float | None = None) -> CycleInputs:
@@ -242,99 +325,9 @@ class Plant:
                            V_sink=b.V_sink_m3h * M3H, p_m_sp=(p_sp + self.amb) * BAR)
 
     def solve_controlled(self, inp: CycleInputs, params: PlantParams, guess=None):
-        """Solve with the LS controller: T_source,out at its set point, or floating at a speed
-        bound. Returns (result, T_source_out [K], ls_limit). Raises ModelError when unsolvable.
-
-        LS above 1800 rpm -> T_source,out rises until N_LS = 1800 ("max"). LS below 700 rpm, or a
-        duty below the HS turndown (HS at 700 rpm moving more than the LS delivers) -> T_source,out
-        falls until the plant can run at its minimum ("min").
-        """
-        # a set point at or below p_e: the HS runs flat out and p_m floats, as for any low set point
-        p_floor = self._p_e_estimate(inp, params) * 1.05
-        if inp.p_m_sp < p_floor:
-            inp = inp.replace(p_m_sp=p_floor)
-        first = None
-        try:
-            return solve(inp, params, guess=guess), inp.T_source_out, ""
-        except InfeasibleOperation as exc:
-            if exc.reason == "negative_pinch" and exc.result is not None:
-                return exc.result, inp.T_source_out, ""
-            if exc.reason not in ("ls_speed_high", "ls_speed_low", "hs_speed_low"):
-                raise
-            if exc.reason != "hs_speed_low" and exc.result is None:
-                raise
-            limit = "max" if exc.reason == "ls_speed_high" else "min"
-            first = exc.result
-        comp = params.comp_LS
-        N_bound = comp.N_max if limit == "max" else comp.N_min
-        state = {"guess": first, "res": None}
-
-        def f(T_out: float) -> float:
-            """N_LS - bound; for "min" a duty below the HS turndown counts as too little duty."""
-            try:
-                r = solve(inp.replace(T_source_out=T_out), params, guess=state["guess"])
-            except InfeasibleOperation as e:
-                if e.result is None:
-                    if limit == "min" and e.reason == "hs_speed_low":
-                        state["res"] = None
-                        return -1.0
-                    raise
-                r = e.result
-            state["guess"] = state["res"] = r
-            return r.N_LS - N_bound
-
-        T_sp, T_in = inp.T_source_out, inp.T_source_in
-        edge = T_in - 0.5 if limit == "max" else max(T_sp - 8.0, 275.15)
-        if limit == "max":
-            clip = lambda x: min(max(x, T_sp), edge)     # noqa: E731
-        else:
-            clip = lambda x: min(max(x, edge), T_sp)     # noqa: E731
-        # the LS speed is roughly proportional to the duty (T_in - T_out): start from that estimate
-        # (or the last floating value) and iterate secant steps; fall back to a bracketed search
-        prev = self._T_out_float
-        x1 = T_in - (T_in - T_sp) * N_bound / first.N_LS if first is not None else T_sp - 0.5
-        if prev is not None and (prev - T_sp) * (x1 - T_sp) > 0:
-            x1 = prev
-        x0, f0 = T_sp, (first.N_LS - N_bound) if first is not None else -1.0
-        x1 = clip(x1)
-        f1 = f(x1)
-        seen = [(x0, f0), (x1, f1)]
-        secant = first is not None and state["res"] is not None
-        for _ in range(8):
-            if not secant or abs(f1) < N_TOL or f1 == f0:
-                break
-            x0, f0, x1 = x1, f1, clip(x1 - f1 * (x1 - x0) / (f1 - f0))
-            f1 = f(x1)
-            seen.append((x1, f1))
-            secant = state["res"] is not None
-        if not (secant and abs(f1) < N_TOL):
-            # bracket from the points seen (widen to the edge if needed), then bisect (brentq)
-            pos = [p for p in seen if p[1] > 0]
-            neg = [p for p in seen if p[1] <= 0]
-            if (limit == "max" and not neg) or (limit == "min" and not pos):
-                fe = f(edge)
-                if (fe > 0) == (limit == "max"):
-                    raise ConvergenceError(f"LS speed bound {N_bound:.0f} rpm not reached with "
-                                           f"T_source_out at {edge - T0:.2f} degC", reason="ls_bound_search")
-                (neg if fe <= 0 else pos).append((edge, fe))
-            a = min(pos, key=lambda p: abs(p[1]))[0]
-            b = min(neg, key=lambda p: abs(p[1]))[0]
-            x1 = brentq(f, min(a, b), max(a, b), xtol=1e-3, maxiter=60)
-            if f(x1) < 0 and limit == "min":     # land on the runnable side of the HS turndown
-                x1 = clip(x1 - 1e-3)
-                f(x1)
-        r = state["res"]
-        if r is None or not (comp.N_min - 1.0 <= r.N_LS <= comp.N_max + 1.0):
-            raise ConvergenceError(f"LS speed bound search failed at T_source_out {x1 - T0:.3f} degC",
-                                   reason="ls_bound_search")
-        self._T_out_float = x1
-        return r, x1, limit
-
-    def _p_e_estimate(self, inp: CycleInputs, params: PlantParams) -> float:
-        C = params.cp_w * params.rho_w * inp.V_source
-        e = math.exp(params.UA_eva / C)
-        T_e = (inp.T_source_out * e - inp.T_source_in) / (e - 1.0)
-        return get_fluid(params.fluid, params.backend).sat_T(T_e).p
+        """Solve with the plant's LS controller (simulator.sensors.LSController.solve):
+        returns (result, T_source_out [K], ls_limit). Raises ModelError when unsolvable."""
+        return self.ls.solve(inp, params, guess)
 
     def _steady_state(self) -> SteadyPoint:
         self.boundary = b = self.profiles.advance(self.t)
@@ -351,26 +344,16 @@ class Plant:
             prev = getattr(self, "steady", None)
             return prev if prev is not None and prev.res is not None else self._standstill(b)
         if not limit:
-            self._T_out_float = None
+            self.ls.T_out_float = None
         self._guess = res
-        return SteadyPoint(self._sensor_values(b, res, T_out, params), res, T_out - T0, limit)
+        return SteadyPoint(self._sensor_values(b, res, T_out), res, T_out - T0, limit, self.p_m_sp_bar_g)
 
-    def _sensor_values(self, b: Boundary, r, T_out: float, params: PlantParams) -> dict[str, float]:
-        amb, st = self.amb, r.states
-        eta_m = self.cfg.truth.motor_efficiency
-        g = lambda p: p / BAR - amb          # noqa: E731  absolute Pa -> bar(g)
-        return {
-            "T_sink_in": b.T_sink_in_C, "T_sink_out": r.T_sink_out - T0,
-            "T_source_in": b.T_source_in_C, "T_source_out": T_out - T0,
-            "V_sink": b.V_sink_m3h, "V_source": b.V_source_m3h,
-            "p_source_in": b.p_source_in_bar_g, "p_source_out": b.p_source_in_bar_g - r.dp_source / BAR,
-            "T_suc_LS": st["LS_suc"].T - T0, "T_dis_LS": st["LS_dis"].T - T0,
-            "T_suc_HS": st["HS_suc"].T - T0, "T_dis_HS": st["HS_dis"].T - T0,
-            "T_c": st["con_out"].T - T0, "T_e": r.T_e - T0,
-            "p_suc_LS": g(r.p_e), "p_dis_LS": g(r.p_m), "p_suc_HS": g(r.p_m), "p_dis_HS": g(r.p_c),
-            "W_LS": r.W_LS / 1e3 / eta_m, "W_HS": r.W_HS / 1e3 / eta_m,
-            "N_LS": r.N_LS, "N_HS": r.N_HS,
-        }
+    def _sensor_values(self, b: Boundary, r, T_out: float) -> dict[str, float]:
+        return sensor_values(r, T_source_in_C=b.T_source_in_C, T_sink_in_C=b.T_sink_in_C,
+                             V_source_m3h=b.V_source_m3h, V_sink_m3h=b.V_sink_m3h,
+                             T_source_out_C=T_out - T0, ambient_bar=self.amb,
+                             p_source_in_bar_g=b.p_source_in_bar_g, T_c_location=self.cfg.sensors.T_c,
+                             motor_efficiency=self.cfg.truth.motor_efficiency)
 
     def _standstill(self, b: Boundary) -> SteadyPoint:
         T_s = self.cfg.control.standstill_T_C
@@ -383,7 +366,7 @@ class Plant:
             v[n] = T_s
         for n in ("p_suc_LS", "p_dis_LS", "p_suc_HS", "p_dis_HS"):
             v[n] = p_s
-        return SteadyPoint(v, None, b.T_source_in_C, "")
+        return SteadyPoint(v, None, b.T_source_in_C, "", self.p_m_sp_bar_g)
 
     # ------------------------------------------------------------------------------ truth ----
     def cop_optimum(self) -> dict:
@@ -412,7 +395,7 @@ class Plant:
                         cache[key] = (-math.inf, math.nan, False)
                 return cache[key][0]
 
-            saved = self._T_out_float
+            saved = self.ls.T_out_float
             lo, hi = r0.p_e / BAR - amb + 0.5, r0.p_c / BAR - amb - 0.5
             grid = np.linspace(lo, hi, 9)
             vals = [cop(p) for p in grid]
@@ -430,7 +413,7 @@ class Plant:
                     a, x1, f1 = x1, x2, f2
                     x2 = a + gr * (c - a)
                     f2 = cop(x2)
-            self._T_out_float = saved
+            self.ls.T_out_float = saved
             best = max(cache, key=lambda k: cache[k][0])
             COP_opt, p_m_opt, hs_sat = cache[best]
             if math.isfinite(COP_opt):
@@ -459,6 +442,13 @@ class Plant:
             "CF_DSH_eff": params.CF_DSH, "CF_SC_eff": params.CF_SC,
             "p_m_sp_bar_g": self.p_m_sp_bar_g, "T_source_out_C": sp.T_source_out_C,
             "ls_limit": sp.ls_limit, "weather": b.weather, "solve_failures": self.solve_failures,
+            # what re-running the plant at another set point needs (simulator.truth.TruthModel)
+            "T_source_in_C": b.T_source_in_C, "T_sink_in_C": b.T_sink_in_C,
+            "V_source_m3h": b.V_source_m3h, "V_sink_m3h": b.V_sink_m3h,
+            "T_source_out_sp_C": self.cfg.control.T_source_out_sp_C,
+            "p_m_sp_solved_bar_g": sp.p_m_sp_bar_g,
+            "compressor_family": self.cfg.truth.compressor_family,
+            "cip_pending": int(self.cip_pending), "cip_requests": self.cip_requests,
         }
         r = sp.res
         if r is not None and self.running:
@@ -470,12 +460,17 @@ class Plant:
                 "N_LS": r.N_LS, "N_HS": r.N_HS, "hs_saturated": bool(r.hs_saturated),
                 "eta_is_LS": r.eta_is_LS, "eta_is_HS": r.eta_is_HS,
                 "p_m_gm_bar_g": math.sqrt(r.p_e * r.p_c) / BAR - amb,
+                "eta_vol_LS": r.eta_vol_LS, "eta_vol_HS": r.eta_vol_HS,
+                "W_electric_kW": r.W_total / 1e3 / self.cfg.truth.motor_efficiency,
+                "subcooling_K": r.subcooling,
             })
             rec.update(self.cop_optimum())
         else:
             rec.update({k: math.nan for k in ("COP", "Q_sink_kW", "Q_source_kW", "W_total_kW",
                                               "p_e_bar_g", "p_m_bar_g", "p_c_bar_g", "N_LS", "N_HS",
                                               "eta_is_LS", "eta_is_HS", "p_m_gm_bar_g",
+                                              "eta_vol_LS", "eta_vol_HS", "W_electric_kW",
+                                              "subcooling_K",
                                               "p_m_opt_bar_g", "p_m_sp_opt_bar_g", "COP_opt")})
             rec["hs_saturated"] = rec["opt_hs_saturated"] = False
         return rec

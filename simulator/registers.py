@@ -100,9 +100,11 @@ def encode_run(run: Run, values: dict[str, float]) -> list[int]:
     return regs
 
 
-def writable_ranges(tags: dict[str, TagSpec], advisory: AdvisoryBlock) -> list[tuple[int, int]]:
-    """Holding-register ranges [start, end) a client may write: the set point and the advisory block."""
-    ranges = [(advisory.start, advisory.start + advisory.size)]
+def writable_ranges(tags: dict[str, TagSpec], advisory: AdvisoryBlock,
+                    extra: list[tuple[int, int]] = ()) -> list[tuple[int, int]]:
+    """Holding-register ranges [start, end) a client may write: the set point, the advisory block
+    and ``extra`` ranges (the CIP request register when configured)."""
+    ranges = [(advisory.start, advisory.start + advisory.size)] + list(extra)
     sp = tags.get(SETPOINT_TAG)
     if sp is not None and sp.register == "holding":
         ranges.append((sp.address, sp.address + sp.count))

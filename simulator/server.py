@@ -4,7 +4,11 @@ Register memory is a pymodbus ``SimDevice`` (separate coil / discrete / holding 
   input 0..       every plant tag of tags.yaml at its address (gaps stay undefined -> exception 2)
   holding 100..   PLC clock (plant time, uint32 epoch s), life counter; 110 p_m,sp (writable)
   holding 1000..  the advisory block of gateway.yaml (writable, readable)
-A client write anywhere but the set point and the advisory block gets exception 2 (ILLEGAL DATA
+  holding cip.request_register (only when configured, cip.mode on_request): write non-zero to ask
+                  for a CIP; reads 1 while a request is pending or the CIP runs, else 0
+The set-point register follows the plant when the PLC's own schedule (control.p_m_sp_schedule)
+steps it; a client write is applied from the next plant step and holds until the next step.
+A client write anywhere but those registers and the advisory block gets exception 2 (ILLEGAL DATA
 ADDRESS) and changes nothing: undefined addresses by SimDevice itself, defined read-only registers
 by the SimDevice action hook. The plant task pushes values with ``server.async_setValues`` using
 read function codes (3 / 4), which never carry values on the wire, so the hook can tell the two
@@ -36,6 +40,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import NoSuchIdException
@@ -47,7 +52,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from .config import SimulatorConfig, load_simulator_config, read_advisory, read_tags
 from .faults import Faults
 from .plant import Plant
-from .registers import SETPOINT_TAG, encode, encode_run, register_runs, writable_ranges
+from .registers import SETPOINT_TAG, encode, encode_run, quantize, register_runs, writable_ranges
 
 log = logging.getLogger("hp_edge.simulator")
 
@@ -144,7 +149,9 @@ class PlantSimulator:
         self.tags = read_tags(cfg.tags_file)
         self.advisory = read_advisory(cfg.gateway_file)
         self.runs = register_runs(self.tags)
-        self.writable = writable_ranges(self.tags, self.advisory)
+        self.cip_register = cfg.cip.request_register if cfg.cip.mode == "on_request" else None
+        extra = [] if self.cip_register is None else [(self.cip_register, self.cip_register + 1)]
+        self.writable = writable_ranges(self.tags, self.advisory, extra)
         self._check_layout()
         self.plant = plant or Plant(cfg)
         self.faults = Faults(self.tags, seed=cfg.seed)
@@ -170,6 +177,8 @@ class PlantSimulator:
         self._restart_task: asyncio.Task | None = None
         self._down: asyncio.Event | None = None
         self._sp_last: float | None = None
+        self._sp_steps_seen = 0
+        self._cip_reg_last = 0
         self._listening: asyncio.Event | None = None
         self._schedule = [(f, False) for f in cfg.faults]
         self._errors: list[BaseException] = []
@@ -181,12 +190,22 @@ class PlantSimulator:
             if run.register == "holding" and run.start < adv.start + adv.size and adv.start < run.start + run.count:
                 raise ValueError(f"{self.cfg.tags_file}: tags at holding {run.start}..{run.start + run.count - 1} "
                                  f"overlap the advisory block of {self.cfg.gateway_file}")
+        reg = self.cip_register
+        if reg is not None:
+            where = f"{self.cfg.path or '<simulator config>'}: cip: key 'request_register'"
+            if adv.contains(reg, 1):
+                raise ValueError(f"{where}: holding {reg} is inside the advisory block of {self.cfg.gateway_file}")
+            for run in self.runs:
+                if run.register == "holding" and run.start <= reg < run.start + run.count:
+                    raise ValueError(f"{where}: holding {reg} is already a tag of {self.cfg.tags_file}")
 
     def _device(self) -> SimDevice:
         holding = [SimData(r.start, count=r.count, values=0, datatype=DataType.REGISTERS)
                    for r in self.runs if r.register == "holding"]
         holding.append(SimData(self.advisory.start, count=self.advisory.size, values=0,
                                datatype=DataType.REGISTERS))
+        if self.cip_register is not None:
+            holding.append(SimData(self.cip_register, count=1, values=0, datatype=DataType.REGISTERS))
         inputs = [SimData(r.start, count=r.count, values=0, datatype=DataType.REGISTERS)
                   for r in self.runs if r.register == "input"]
         if not inputs:   # SimDevice needs every block non-empty
@@ -399,8 +418,11 @@ class PlantSimulator:
         try:
             while not self._stopping:
                 await self._sync_setpoint()
+                await self._sync_cip_request()
                 target = plant0 + self.speed * (loop.time() - wall0)
                 await loop.run_in_executor(self._executor, self.plant.advance_to, target, max_ticks)
+                await self._sync_setpoint()
+                await self._sync_cip_request()
                 if target - self.plant.t > 4.0 * self.speed + self.plant.dt:
                     # cannot keep up (slow machine, huge speed): re-anchor instead of bursting
                     self.stats.catchups += 1
@@ -425,7 +447,9 @@ class PlantSimulator:
             raise
 
     async def _sync_setpoint(self) -> None:
-        """Follow the set-point register (unless frozen: the write never reaches the PLC)."""
+        """Keep the set-point register and the plant's set point together (unless frozen: a
+        write then never reaches the PLC). A client write (the register differs from what was
+        last applied) moves the plant; a step of the PLC's own schedule moves the register."""
         spec = self.tags.get(SETPOINT_TAG)
         if spec is None or self.faults.frozen or self._server is None:
             return
@@ -433,15 +457,44 @@ class PlantSimulator:
         raw = ModbusClientMixin.convert_from_registers(
             list(regs), getattr(ModbusClientMixin.DATATYPE, spec.type.upper()),
             word_order="little" if spec.byte_order in ("CDAB", "DCBA") else "big")
-        if spec.sentinel is not None and raw == spec.sentinel:
+        if not (spec.sentinel is not None and raw == spec.sentinel):
+            value = raw * spec.scale + spec.offset
+            if self._sp_last is None or abs(value - self._sp_last) >= 1e-9:
+                used = self.plant.set_p_m_sp(value)
+                self._sp_last = used
+                self._sp_steps_seen = self.plant.sp_steps
+                if abs(used - value) > spec.scale / 2:      # clamped: the PLC shows what it uses
+                    await self._server.async_setValues(self.cfg.device_id, 3, spec.address, encode(spec, used))
+                return
+        if self.plant.sp_steps != self._sp_steps_seen:
+            sp = self.plant.p_m_sp_bar_g
+            await self._server.async_setValues(self.cfg.device_id, 3, spec.address, encode(spec, sp))
+            self._sp_last = float(quantize(spec, np.array([sp]))[0])
+            self._sp_steps_seen = self.plant.sp_steps
+
+    async def _sync_cip_request(self) -> None:
+        """The CIP request register (cip.mode on_request): a non-zero client write asks the plant
+        for a CIP; the register then reads 1 while the request is pending or the CIP runs."""
+        reg = self.cip_register
+        if reg is None or self.faults.frozen or self._server is None:
             return
-        value = raw * spec.scale + spec.offset
-        if self._sp_last is not None and abs(value - self._sp_last) < 1e-9:
-            return
-        used = self.plant.set_p_m_sp(value)
-        self._sp_last = used
-        if abs(used - value) > spec.scale / 2:      # clamped: the PLC shows what it uses
-            await self._server.async_setValues(self.cfg.device_id, 3, spec.address, encode(spec, used))
+        dev = self.cfg.device_id
+        value = (await self._server.async_getValues(dev, 3, reg, 1))[0]
+        plant = self.plant
+        want = int(plant.cip_pending or plant.cip_window is not None)
+        if value != 0 and want == 0 and value != self._cip_reg_last:
+            plant.request_cip()
+            want = 1
+        if value != want:
+            await self._server.async_setValues(dev, 3, reg, [want])
+        self._cip_reg_last = want
+
+    async def request_cip(self) -> bool:
+        """Ask the plant for a CIP (cip.mode on_request), serialised with its stepping thread;
+        returns Plant.request_cip()'s answer."""
+        if self._executor is None:
+            return self.plant.request_cip()
+        return await asyncio.get_running_loop().run_in_executor(self._executor, self.plant.request_cip)
 
     def _apply_schedule(self) -> None:
         if not self._schedule:

@@ -16,7 +16,7 @@ from model.calibration import (DEFAULT_SPECS, BoundedParam, CalibrationError, Ca
 from model.dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from model.fluid import get_fluid
 from model.measured import process
-from model.synthetic import Noise, Operation, Truth, generate
+from simulator.synthetic import Noise, Operation, Truth, generate
 
 R_TOL = 0.2e-3            # K/kW, fouling resistance per window (issue #4)
 CF_DP_TOL = 0.02          # CF_dp,f per window (issue #4)

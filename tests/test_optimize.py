@@ -9,7 +9,7 @@ import pytest
 
 from model.batch import simulate_batch
 from model.optimize import OptimizationError, optimize_setpoint, sweep
-from model.synthetic import Noise, Operation, Truth, generate
+from simulator.synthetic import Noise, Operation, Truth, generate
 
 SWEEP_STEP = 0.05         # bar, brute-force resolution (issue #4)
 AGREE_TOL = 0.05          # bar, optimizer vs brute force (issue #4)

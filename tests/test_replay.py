@@ -10,7 +10,7 @@ import pytest
 from edge.cli import main
 from model.measured import process
 from model.analysis.replay import CIP_COLUMNS, ReplayError, ReplaySettings, detect_cips, replay
-from model.synthetic import Noise, Operation, Truth, generate
+from simulator.synthetic import Noise, Operation, Truth, generate
 
 R_TOL = 0.2e-3             # K/kW per window (issue #4)
 CF_DP_TOL = 0.02           # per window (issue #4)

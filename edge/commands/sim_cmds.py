@@ -20,6 +20,10 @@ def register(sub) -> None:
     p.add_argument("--port", type=int, default=5020, help="listen port (5020; 0 = any free port)")
     p.add_argument("--speed", type=float, default=60.0, help="plant seconds per wall second, 1..3600 (60)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
+    p.add_argument("--compressors", default=None, metavar="FAMILY",
+                   help="the plant's hidden compressor curves: perturbed (plant.yaml's polynomials "
+                        "perturbed, the default), nominal (plant.yaml's polynomials) or a family of "
+                        "simulator.yaml's compressor_families (ratio_only, speed_peak, low_peak)")
     p.add_argument("--truth-log", default=None, metavar="FILE",
                    help="append the hidden truth (JSON lines) once per plant minute")
     p.add_argument("--fault", action="append", default=[], metavar="SPEC",
@@ -49,6 +53,8 @@ def cmd_simulate(args) -> int:
         cfg = load_simulator_config(args.config)
         if args.seed is not None:
             cfg = cfg.replace(seed=args.seed)
+        if args.compressors is not None:
+            cfg = cfg.with_compressor_family(args.compressors)
         faults = [parse_cli_fault(f) for f in args.fault]
     except SimConfigError as exc:
         return _fail(str(exc))
@@ -62,9 +68,13 @@ def cmd_simulate(args) -> int:
         if not args.start_fouled:
             cfg = cfg.replace(fouling=dataclasses.replace(
                 cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
-        res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
+        try:
+            res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
+        except SimConfigError as exc:
+            return _fail(str(exc))
         print(json.dumps({"history": args.export, "truth": args.truth, "rows": res.rows,
-                          "days": args.days, "seed": cfg.seed, "seconds": round(res.seconds, 2)}))
+                          "days": args.days, "seed": cfg.seed,
+                          "compressors": cfg.truth.compressor_family, "seconds": round(res.seconds, 2)}))
         return 0
     if not 1.0 <= args.speed <= 3600.0:
         return _fail("--speed must be within 1..3600")
@@ -78,9 +88,13 @@ async def _serve(cfg, args, faults) -> int:
     import asyncio
     import signal
 
+    from simulator.config import SimConfigError
     from simulator.server import PlantSimulator
-    sim = PlantSimulator(cfg, host=args.host, port=args.port, speed=args.speed,
-                         truth_log=args.truth_log)
+    try:
+        sim = PlantSimulator(cfg, host=args.host, port=args.port, speed=args.speed,
+                             truth_log=args.truth_log)
+    except (SimConfigError, ValueError) as exc:
+        return _fail(str(exc))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     installed = []
@@ -101,6 +115,7 @@ async def _serve(cfg, args, faults) -> int:
             sim.add_fault(f)
         print(json.dumps({"listening": f"{args.host}:{sim.port}", "speed": sim.speed, "seed": cfg.seed,
                           "start_time": cfg.start_time, "device_id": cfg.device_id,
+                          "compressors": cfg.truth.compressor_family,
                           "truth_log": args.truth_log,
                           "faults": [f.kind + (f":{f.tag}" if f.tag else "") for f in faults]}),
               flush=True)

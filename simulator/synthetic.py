@@ -7,14 +7,13 @@ sensor noise. Because the plant *is* the model (no model-form discrepancy), cali
 must recover the truth to within what the noise allows; the richer plant with model-form
 discrepancy is ``simulator/``.
 
-Sensor mapping (same choices as the simulator): T_suc_LS = T_e + superheat at p_e; T_dis_LS, T_dis_HS
-the discharge states; T_suc_HS saturated vapour at p_m; T_c saturated liquid at p_c; T_e the
-evaporating temperature; p_suc_LS = p_e, p_dis_LS = p_suc_HS = p_m, p_dis_HS = p_c (gauge);
-p_source_out fixed, p_source_in = p_source_out + dp_source. W_LS/W_HS = shaft power.
+Sensor mapping and LS controller: the simulator's own (simulator/sensors.py), with T_c at the
+condenser outlet (saturated liquid at p_c), p_source_out fixed and p_source_in = p_source_out +
+dp_source, W_LS/W_HS = shaft power. When the LS would need more than its maximum speed it runs there
+and T_source,out floats above the set point (below it at the minimum speed). The HS speed limit is
+the model's own branch switch.
 
-Controllers: LS speed holds T_source,out at its set point; when the LS would need more than its
-maximum speed, it runs at the maximum and T_source,out floats above the set point (1-D secant).
-The HS speed limit is the model's own branch switch.
+This module lived in model/ until the plant emulators got one home in simulator/ (issue 8).
 """
 from __future__ import annotations
 
@@ -24,10 +23,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .cycle import CycleResult, InfeasibleOperation, ModelError, solve
-from .fluid import get_fluid
-from .params import CycleInputs, PlantParams
-from .units import BAR, C_to_K, K_to_C, M3H, barg_to_Pa
+from model.cycle import CycleResult, ModelError
+from model.fluid import get_fluid
+from model.params import CycleInputs, PlantParams
+from model.units import BAR, C_to_K, K_to_C, M3H, barg_to_Pa
+
+from .sensors import LSController, sensor_values
 
 DAY_MIN = 1440
 CANONICAL = ("T_sink_in", "T_sink_out", "T_source_in", "T_source_out", "V_sink", "V_source",
@@ -168,6 +169,7 @@ def generate(nominal: PlantParams, operation: Operation = Operation(), truth: Tr
     tau_dp = truth.tau_dp_days * DAY_MIN
     cips: list[dict] = []
     guess: CycleResult | None = None
+    ls = LSController()
     for i in range(n):
         if i > 0 and cip[i] and not cip[i - 1]:
             before = (R, CF)
@@ -198,16 +200,24 @@ def generate(nominal: PlantParams, operation: Operation = Operation(), truth: Tr
         inp = CycleInputs(C_to_K(T_src_in[i]), C_to_K(op.T_source_out_sp_C), C_to_K(T_sink_in[i]),
                           V_src[i] * M3H, V_sink[i] * M3H, barg_to_Pa(p_sp[i], amb))
         try:
-            res, T_out = _solve_controlled(inp, par, guess, fluid)
+            res, T_out, limit = ls.solve(inp, par, guess)
         except ModelError as exc:
             status[i] = exc.reason
             _standstill(rows, i, T_src_in[i], T_sink_in[i], fluid, amb, op)
             rows["running"][i] = 0.0
             guess = None
+            ls.T_out_float = None
             continue
         guess = res
-        status[i] = "ok" if abs(T_out - inp.T_source_out) < 1e-9 else "ls_speed_limit"
-        _sensors(rows, i, res, inp, T_out, par, amb, op)
+        if not limit:
+            ls.T_out_float = None
+        status[i] = "ok" if not limit else "ls_speed_limit"
+        values = sensor_values(res, T_source_in_C=T_src_in[i], T_sink_in_C=T_sink_in[i],
+                               V_source_m3h=V_src[i], V_sink_m3h=V_sink[i],
+                               T_source_out_C=K_to_C(T_out), ambient_bar=amb,
+                               p_source_out_bar_g=op.p_source_out_barg)
+        for c, v in values.items():
+            rows[c][i] = v
         if progress is not None and i % 500 == 0:
             progress(i, n)
     if progress is not None:
@@ -234,71 +244,6 @@ def generate(nominal: PlantParams, operation: Operation = Operation(), truth: Tr
         truth_frame["COP"] = Q / (clean["W_LS"] + clean["W_HS"])
     truth_frame["Q_sink_kW"] = Q
     return SyntheticHistory(history=hist, truth=truth_frame, cips=cips, params=true)
-
-
-def _solve_controlled(inp: CycleInputs, par: PlantParams, guess, fluid) -> tuple[CycleResult, float]:
-    """Solve with the LS controller: T_source,out at its set point, or floating above it with the
-    LS compressor at its maximum speed."""
-    try:
-        return solve(inp, par, guess=guess, fluid=fluid), inp.T_source_out
-    except InfeasibleOperation as exc:
-        if exc.reason != "ls_speed_high" or exc.result is None:
-            raise
-        res = exc.result
-    N_max = par.comp_LS.N_max
-    # secant on T_source_out: less duty -> lower LS speed
-    x0, f0 = inp.T_source_out, res.N_LS - N_max
-    x1 = x0 + 0.3
-    r1 = _solve_any(inp.replace(T_source_out=x1), par, res, fluid)
-    f1 = r1.N_LS - N_max
-    for _ in range(30):
-        if f1 == f0:
-            break
-        x2 = x1 - f1 * (x1 - x0) / (f1 - f0)
-        x2 = min(max(x2, inp.T_source_out), inp.T_source_in - 0.5)
-        x0, f0 = x1, f1
-        r1 = _solve_any(inp.replace(T_source_out=x2), par, r1, fluid)
-        x1, f1 = x2, r1.N_LS - N_max
-        if abs(f1) < 0.01:
-            return r1, x1
-    raise InfeasibleOperation("LS speed limit: no source outlet temperature found", reason="ls_speed_high")
-
-
-def _solve_any(inp, par, guess, fluid) -> CycleResult:
-    try:
-        return solve(inp, par, guess=guess, fluid=fluid)
-    except InfeasibleOperation as exc:
-        if exc.result is None:
-            raise
-        return exc.result
-
-
-def _sensors(rows, i, r: CycleResult, inp: CycleInputs, T_out: float, par: PlantParams,
-             amb: float, op: Operation) -> None:
-    g = lambda p: p / BAR - amb  # noqa: E731  Pa abs -> bar(g)
-    s = r.states
-    rows["T_sink_in"][i] = K_to_C(inp.T_sink_in)
-    rows["T_sink_out"][i] = K_to_C(r.T_sink_out)
-    rows["T_source_in"][i] = K_to_C(inp.T_source_in)
-    rows["T_source_out"][i] = K_to_C(T_out)
-    rows["V_sink"][i] = inp.V_sink / M3H
-    rows["V_source"][i] = inp.V_source / M3H
-    rows["p_source_out"][i] = op.p_source_out_barg
-    rows["p_source_in"][i] = op.p_source_out_barg + r.dp_source / BAR
-    rows["T_suc_LS"][i] = K_to_C(s["LS_suc"].T)
-    rows["T_dis_LS"][i] = K_to_C(s["LS_dis"].T)
-    rows["T_suc_HS"][i] = K_to_C(s["HS_suc"].T)
-    rows["T_dis_HS"][i] = K_to_C(s["HS_dis"].T)
-    rows["p_suc_LS"][i] = g(r.p_e)
-    rows["p_dis_LS"][i] = g(r.p_m)
-    rows["p_suc_HS"][i] = g(r.p_m)
-    rows["p_dis_HS"][i] = g(r.p_c)
-    rows["T_c"][i] = K_to_C(r.T_c)
-    rows["T_e"][i] = K_to_C(r.T_e)
-    rows["W_LS"][i] = r.W_LS / 1e3
-    rows["W_HS"][i] = r.W_HS / 1e3
-    rows["N_LS"][i] = r.N_LS
-    rows["N_HS"][i] = r.N_HS
 
 
 def _standstill(rows, i, T_src_in: float, T_sink_in: float, fluid, amb: float, op: Operation) -> None:

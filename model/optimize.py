@@ -111,6 +111,7 @@ class Point:
     W_kW: float
     hs_saturated: bool              # every row HS-saturated
     frame: pd.DataFrame             # per-row model outputs
+    beyond: float | None = None     # search: a better set point just outside the feasible set
 
     @property
     def ok(self) -> bool:
@@ -187,10 +188,14 @@ def _point(sp, frame: pd.DataFrame, w: np.ndarray) -> Point:
 
 def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP,
            xtol: float = XTOL, subsample: int = SUBSAMPLE,
-           feasible: Callable[[Point], bool] | None = None) -> tuple[float, Point]:
+           feasible: Callable[[Point], bool] | None = None,
+           anchor: float | None = None) -> tuple[float, Point]:
     """The set point in [lo, hi] with the highest period COP of the evaluator's rows (see the module
-    docstring); ``feasible`` rejects candidates. Returns (set point, its Point) with the plateau
-    convention applied. Raises OptimizationError when no candidate solves (and is feasible)."""
+    docstring); ``feasible`` rejects candidates. With ``anchor`` (a set point known to be feasible,
+    e.g. the actual one) the coarse scan marches out from it in both directions and stops where the
+    candidates become infeasible: the feasible set is one stretch around the operating point.
+    Returns (set point, its Point) with the plateau convention applied. Raises OptimizationError when
+    no candidate solves (and is feasible)."""
     n = len(ev.rows)
 
     def value(p: Point) -> float:
@@ -203,7 +208,14 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     if grid[-1] < hi - 1e-9:
         grid = np.append(grid, hi)
     sub = rows if len(rows) < n else None
-    scan = np.array([value(ev.at(float(sp), sub)) for sp in grid])
+    probe = np.array([n // 2])
+
+    def scan_value(sp: float) -> float:
+        # a candidate the middle row already rules out (feasibility needs every row) costs one solve
+        if feasible is not None and n > 1 and not math.isfinite(value(ev.at(sp, probe))):
+            return -math.inf
+        return value(ev.at(sp, sub))
+    scan = np.array([scan_value(float(sp)) for sp in grid])
     if not np.isfinite(scan).any():
         raise OptimizationError("no set point in the range solves every sample of the window"
                                 + (" within the trusted region" if feasible else ""))
@@ -234,6 +246,14 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     p = ev.at(sp_opt)
     if not math.isfinite(value(p)):
         raise OptimizationError("the optimum found does not solve every sample")
+    # does the COP still rise just outside the feasible stretch? (the optimum lies beyond it)
+    p.beyond = None
+    if feasible is not None:
+        for nb in (sp_opt - 0.5 * coarse_step, sp_opt + 0.5 * coarse_step):
+            if lo <= nb <= hi:
+                q = ev.at(nb)
+                if q.ok and not feasible(q) and q.COP > p.COP * (1.0 + PLATEAU_RTOL):
+                    p.beyond = float(nb)
     if p.hs_saturated:   # plateau: the set point that just reaches the floating p_m
         amb = ev.params.ambient_pressure
         p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5

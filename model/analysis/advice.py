@@ -47,11 +47,14 @@ class AdviceError(ValueError):
 class AdviceSettings:
     """plant.yaml ``advice`` (every key optional; these are the defaults)."""
     representative_points: int = 8      # operating points the search evaluates per window
-    uncertainty_draws: int = 12         # curve draws for the uncertainty of the expected gain
+    check_rows: int = 40                # samples (evenly spaced) of the whole-window check
+    uncertainty_draws: int = 8          # curve draws for the uncertainty of the expected gain
     confidence_k: float = 1.0           # the gain must exceed k standard deviations
     min_coverage_share: float = 0.8     # of the window's samples inside the learned region
     max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
     dead_band_pct: float = 0.05         # move the recommendation only for more COP than this [%]
+    inside_tolerance: float = 0.25      # confident only when the optimum's compressor operating
+                                        # points lie within this many margins of the covered hull
     seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
 
     @classmethod
@@ -106,6 +109,19 @@ def _operating_points(p: Point, params: PlantParams) -> dict:
             "HS": (p_c / p_m, f["N_HS_rpm"].to_numpy(dtype=float) / params.comp_HS.N_nom)}
 
 
+def _distance(learner: CompressorLearner, params: PlantParams, offsets: dict, p: Point) -> float:
+    """The largest coverage distance (margin units) of an evaluation's rows over the learned
+    stages, offsets applied; 0 inside the covered hull."""
+    pts = _operating_points(p, params)
+    d = 0.0
+    for st in STAGES:
+        if learner.learned(st, "eta_is"):
+            pi, n = pts[st]
+            d_pi, d_n = offsets.get(st, (0.0, 0.0))
+            d = max(d, float(np.max(learner.coverage_distance(st, pi - d_pi, n - d_n))))
+    return d
+
+
 def _feasible(learner: CompressorLearner | None, params: PlantParams, offsets: dict):
     """Candidate filter: every evaluated row's (pi, n) per stage, less the model's offset from the
     measured operating point at the actual set point, within the covered region + margin (only for
@@ -153,6 +169,11 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    # the whole-window check on evenly spaced samples (all of them when check_rows >= len)
+    keep = np.unique(np.linspace(0, len(data) - 1, min(int(s.check_rows), len(data))).round().astype(int))
+    data = data.iloc[keep].reset_index(drop=True)
+    if measured is not None:
+        measured = {k: np.asarray(v, dtype=float)[keep] for k, v in measured.items()}
     full = Evaluator(data, np.ones(len(data)), adaptive)
     ref = full.at(None)
     ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
@@ -197,6 +218,7 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         raise OptimizationError("the recommended set point does not solve every sample of the window")
     dcop = 100.0 * (rec.COP / ref.COP - 1.0)
     dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
+    dcop_step = 100.0 * (opt.COP / ref.COP - 1.0)
     # uncertainty of the expected gain: draws of the learned curves (and of R_th,f)
     sd = math.nan
     if learner is not None and s.uncertainty_draws >= 2:
@@ -229,6 +251,16 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
     for st, r in resid.items():
         if math.isfinite(r) and abs(r) > s.max_curve_residual:
             reasons.append(f"the learned {st} curve misses this window's measured eta_is by {r:+.3f}")
+    if learner is not None and not reasons:
+        d_opt = _distance(learner, adaptive, offsets, ev.at(sp_opt))
+        if d_opt > s.inside_tolerance:
+            reasons.append(f"the model's optimum {sp_opt:.2f} bar(g) lies outside the region the "
+                           f"curves have learned from data ({d_opt:.2f} margins out): the plant has "
+                           f"not run near it yet")
+    if p_opt.beyond is not None:
+        reasons.append(f"the model's optimum lies beyond the region the learned curves cover "
+                       f"(a step to {sp_opt:.2f} bar(g) would gain {dcop_step:+.2f} %; operation "
+                       f"there teaches the curves the way on)")
     sd_eff = sd if math.isfinite(sd) else math.inf
     if not reasons and not dcop > s.confidence_k * sd_eff:
         if abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct:

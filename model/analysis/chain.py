@@ -37,6 +37,7 @@ from .advice import AdviceResult, AdviceSettings, advise
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
+LS_SATURATED_RPM = 15.0     # a measured LS speed this close to its maximum: at the limit
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,7 @@ class ChainSettings:
     optimize: bool = True
     learn_compressors: bool = True
     condenser_correction: bool = True           # scale the condenser unit's UA to the measured p_c
+    figure_rows: int = 40                       # samples (evenly spaced) the model figures simulate
     advice: AdviceSettings = AdviceSettings()
     learning: LearningSettings = LearningSettings()
 
@@ -75,6 +77,7 @@ class ChainState:
     last_rec_barg: float | None = None          # previous confident recommendation (dead band)
     last_fouling: CalibrationResult | None = None
     cond_factor: float | None = None            # last window's condenser-unit factor
+    T_out_sp_C: float | None = None             # the LS speed controller's T_source,out set point
 
 
 @dataclass
@@ -88,6 +91,8 @@ class WindowResult:
     heat_balance_pct: float = math.nan
     CF_cond_window: float = math.nan            # condenser-unit UA factor fitted to this window's p_c
     p_c_error_bar: float = math.nan             # model - measured p_c before that correction
+    T_source_out_sp_C: float = math.nan         # LS controller set point (T_source,out, LS not at 1800)
+    ls_saturated_share: float = math.nan        # samples with the LS at its speed limit
     R_th_f_K_per_kW: float = math.nan
     R_th_f_se_K_per_kW: float = math.nan
     R_th_f_share_pct: float = math.nan
@@ -361,12 +366,29 @@ class AnalysisChain:
                             learner.drift_pct(st, float(np.median(pi[ok])), float(np.median(nn[ok]))))
         # ---- advice
         if self.s.optimize:
+            # the LS speed controller's set point: T_source,out where the LS is not at its limit.
+            # Where it is (T_source,out floating above the set point), the advice starts from the
+            # set point, so that a set point giving the LS more capacity can bring T_source,out down
+            adv_in = der
+            n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
+                if "N_LS" in data.columns else np.full(len(der), np.nan)
+            n_max = base.comp_LS.N_max
+            free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)
+            if free.sum() >= 10:
+                state.T_out_sp_C = float(np.median(der["T_source_out"].to_numpy(dtype=float)[free]))
+            res.T_source_out_sp_C = state.T_out_sp_C if state.T_out_sp_C is not None else math.nan
+            sat = np.isfinite(n_ls) & (n_ls >= n_max - LS_SATURATED_RPM)
+            res.ls_saturated_share = float(sat.mean())
+            if sat.any() and state.T_out_sp_C is not None:
+                adv_in = der.copy()
+                t_out = adv_in["T_source_out"].to_numpy(dtype=float)
+                adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, state.T_out_sp_C), t_out)
             measured = None
             if obs is not None:
                 measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
                             for st in STAGES for q in ("pi", "n")}
             try:
-                adv = advise(der, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
+                adv = advise(adv_in, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
                              coverage_share=res.coverage_share if learner is not None else 1.0,
                              curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
                              R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured)
@@ -397,17 +419,21 @@ class AnalysisChain:
     def _model_figures(self, res: WindowResult, der: pd.DataFrame, fixed: PlantParams,
                        adaptive: PlantParams) -> None:
         cols = ("Q_sink_kW", "W_total_kW", "COP")
-        inputs = der[list(INPUT_COLUMNS)]
+        n = len(der)
+        keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
+        sub = der.iloc[keep]
+        inputs = sub[list(INPUT_COLUMNS)]
         sim_f = simulate_batch(inputs, fixed, columns=cols)
         sim_a = simulate_batch(inputs, adaptive, columns=cols)
         both = solved_mask(sim_f) & solved_mask(sim_a)
-        meas_cop = der["COP"].to_numpy(dtype=float)[both]
-        meas_q = der["Q_sink_kW"].to_numpy(dtype=float)[both]
+        meas_cop = sub["COP"].to_numpy(dtype=float)[both]
+        meas_q = sub["Q_sink_kW"].to_numpy(dtype=float)[both]
         res.nrmse_COP_fixed = _nrmse(sim_f["COP"].to_numpy(dtype=float)[both], meas_cop)
         res.nrmse_COP_adaptive = _nrmse(sim_a["COP"].to_numpy(dtype=float)[both], meas_cop)
         res.nrmse_Q_sink_fixed = _nrmse(sim_f["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
         res.nrmse_Q_sink_adaptive = _nrmse(sim_a["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
         res.COP_measured = _ratio(der["Q_sink_kW"], der["W_total_kW"])
+        sim_f.index = sim_a.index = der.index[keep]
         res.COP_fixed = _ratio(sim_f["Q_sink_kW"][both], sim_f["W_total_kW"][both])
         res.COP_adaptive = _ratio(sim_a["Q_sink_kW"][both], sim_a["W_total_kW"][both])
         res.detail["model_series"] = {"fixed": sim_f, "adaptive": sim_a}

@@ -353,39 +353,6 @@ class _Coverage:
                    {(int(a), int(b)): float(w) for a, b, w in d["bins"]})
 
 
-def hull_distance(points: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Distance of each query point q (k, 2) to the convex hull of ``points`` (m, 2), in the same
-    (scaled) units; 0 inside. Degenerate hulls (1 point, collinear points) are handled."""
-    q = np.atleast_2d(np.asarray(q, dtype=float))
-    if len(points) == 0:
-        return np.full(len(q), np.inf)
-    pts = np.unique(points, axis=0)
-    hull = pts
-    if len(pts) >= 3:
-        try:
-            from scipy.spatial import ConvexHull
-            h = ConvexHull(pts)
-            hull = pts[h.vertices]
-        except Exception:  # noqa: BLE001 - collinear points (QhullError): use them as a polyline
-            order = np.lexsort((pts[:, 1], pts[:, 0]))
-            hull = pts[order][[0, -1]]
-    if len(hull) == 1:
-        return np.linalg.norm(q - hull[0], axis=1)
-    edges = list(zip(hull, np.roll(hull, -1, axis=0))) if len(hull) >= 3 else [(hull[0], hull[1])]
-    d = np.full(len(q), np.inf)
-    for a, b in edges:
-        ab = b - a
-        t = np.clip(((q - a) @ ab) / max(float(ab @ ab), 1e-300), 0.0, 1.0)
-        d = np.minimum(d, np.linalg.norm(q - (a + t[:, None] * ab), axis=1))
-    if len(hull) >= 3:   # inside test: same side of every (counter-clockwise) edge
-        inside = np.ones(len(q), dtype=bool)
-        for a, b in edges:
-            cross = (b[0] - a[0]) * (q[:, 1] - a[1]) - (b[1] - a[1]) * (q[:, 0] - a[0])
-            inside &= cross >= -1e-12
-        d[inside] = 0.0
-    return d
-
-
 class CompressorLearner:
     """Learns eta_is and eta_vol (per stage) and the drive factors from observations.
 
@@ -565,18 +532,22 @@ class CompressorLearner:
 
     def coverage_distance(self, stage: str, pi, n, reference: dict | None = None) -> np.ndarray:
         """Distance of (pi, n) points to the covered region, in units of the margin (<= 1: within
-        the allowed extrapolation; 0: inside the hull of the covered bins). inf when nothing is
-        covered. ``reference``: a coverage document (commissioning) instead of the current one."""
+        the allowed extrapolation; 0: inside a covered bin). The region is local: the bins where the
+        compressor has run for at least ``min_bin_weight`` effective samples, not the hull between
+        them (a curve's peak can hide in a gap between two clusters of data, e.g. between the
+        operation at two set points). inf when nothing is covered. ``reference``: a coverage
+        document (commissioning) instead of the current one."""
         cov = _Coverage.from_dict(reference) if reference is not None else self.coverage[stage]
         c = cov.centers(self.s.min_bin_weight)
-        if len(c) == 0:
-            return np.full(np.atleast_1d(pi).shape, np.inf)
-        scale = np.array([self.s.margin_pi, self.s.margin_n])
         q = np.column_stack([np.atleast_1d(pi), np.atleast_1d(n)]).astype(float)
-        # the covered bins' hull, widened by half a bin (a bin centre stands for its whole bin)
+        if len(c) == 0:
+            return np.full(len(q), np.inf)
         half = 0.5 * np.array([cov.bin_pi, cov.bin_n])
-        corners = np.concatenate([c + half * np.array(sg) for sg in ((1, 1), (1, -1), (-1, 1), (-1, -1))])
-        return hull_distance(corners / scale, q / scale)
+        scale = np.array([self.s.margin_pi, self.s.margin_n])
+        # per query and bin: the distance to the bin's rectangle, scaled by the margin
+        gap = np.maximum(np.abs(q[:, None, :] - c[None, :, :]) - half, 0.0) / scale
+        d = np.sqrt((gap ** 2).sum(axis=2)).min(axis=1)
+        return np.where(np.isfinite(q).all(axis=1), d, np.inf)
 
     def eta_is(self, stage: str, pi, n) -> np.ndarray:
         comp = self.compressor(stage)

@@ -367,11 +367,13 @@ def _window_samples(data: pd.DataFrame, res: WindowResult, state: ChainState) ->
     out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
     out["window_start"] = res.window_start
     series = res.detail.get("model_series")
-    if series is not None:
+    if series is not None:      # the model figures' samples (evenly spaced, chain.figure_rows)
         for kind in ("fixed", "adaptive"):
             f = series[kind]
-            out[f"COP_{kind}"] = f["COP"].to_numpy(dtype=float)
-            out[f"Q_sink_kW_{kind}"] = f["Q_sink_kW"].to_numpy(dtype=float)
+            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}")):
+                v = np.full(len(out), np.nan)
+                v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
+                out[name] = v
         res.detail.pop("model_series")
     learner = state.learner
     if learner is not None:

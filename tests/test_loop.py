@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import os
 import signal
@@ -524,6 +525,26 @@ def test_a_clock_set_back_is_rejected_then_accepted_as_a_correction(cfg):
     assert accepted[28:30] == [0xFFFF, 0xFFFF]               # its age is unknown, not 0
     assert calls[1] < calls[0] - 9 * 3600.0                   # calibrated on the new clock
     assert snap.clock_rejected == 2 and snap.clock_jumps == 1
+
+
+def test_rejected_clock_readings_are_counted_and_logged_at_a_bounded_rate(cfg, caplog):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        await cycles(gw, 3)
+        plc.next_clock = [4294967295.0] * 50
+        await cycles(gw, 52)
+        await gw.shutdown()
+        return gw.snapshot
+    snap = run(go())
+    assert snap.clock_rejected == 50
+    lines = [r.getMessage() for r in caplog.records if r.name == "edge.loop"
+             and r.levelno >= logging.WARNING and r.getMessage().startswith("clock check")]
+    assert len(lines) == 2
+    assert lines[0].startswith("clock check: sample clock 2106-02-07T06:28:15Z is ")
+    assert lines[0].endswith("the scan is not aggregated (1 rejected since start) (repeats are "
+                             "summarised every 600 s)")
+    assert lines[1].startswith("clock check: recovered after 50 failure(s) in ")
 
 
 def test_a_corrupt_clock_read_and_a_one_day_glitch_are_neither_stored_nor_scheduled(cfg):

@@ -283,3 +283,29 @@ def test_kill_9_loses_no_committed_row(tmp_path):
     n = db.execute("SELECT COUNT(*), MAX(ts) FROM samples").fetchone()
     db.close()
     assert n[0] >= committed + 1 and n[1] >= committed * 60
+
+
+def test_a_lock_taken_while_running_is_waited_out(tmp_path):
+    """The database opened fine; another process then holds a write lock for a while."""
+    mono = FakeMono()
+    path = tmp_path / "h.sqlite"
+    with HistoryStore(path, retention_days=10.0, busy_timeout_s=0.02, monotonic=mono) as s:
+        s.add_samples(rows(0, 1))
+        other = sqlite3.connect(path, isolation_level=None, timeout=0.02)
+        other.execute("BEGIN IMMEDIATE")            # a writer that does not finish
+        try:
+            assert s.add_samples(rows(60, 1)) == 0
+            assert s.fault == "database is locked (SQLITE_BUSY)" and s.pending == 1
+            mono.t += 1.0
+            assert s.add_samples(rows(120, 1)) == 0          # still locked: back-off doubles
+        finally:
+            other.execute("ROLLBACK")
+            other.close()
+        mono.t += 1.5
+        assert s.add_samples(rows(180, 1)) == 0              # free, but 2 s are not over yet
+        assert s.fault is not None and s.pending == 3
+        mono.t += 1.0
+        assert s.add_samples(rows(240, 1)) == 4 and s.fault is None
+        assert [r[0] for r in s.db.execute("SELECT ts FROM samples ORDER BY ts")] == \
+            [0, 60, 120, 180, 240]
+    assert list(tmp_path.glob("*.corrupt-*")) == []

@@ -18,7 +18,15 @@ Validation rules (SPEC 4, 7.2):
   every pending scan is discarded (counted as ``frozen``), so frozen values never reach a
   one-minute sample, even those read before the freeze was detectable;
 * flags: ``running`` takes the minimum over the period (running the whole minute) and ``cip`` the
-  maximum (a CIP anywhere in the minute); every other tag the arithmetic mean.
+  maximum (a CIP anywhere in the minute); every other tag the arithmetic mean;
+* a **flat-lined** (stuck) sensor is bad with the reason ``flatline``: while the plant runs, a tag
+  whose value has not moved by more than its resolution (half a raw step, ``0.5 * |scale|``, for
+  integer registers; any change for float32) for its ``flatline_s`` of sample-clock time is
+  excluded from the mean until it moves again. ``flatline_s`` comes from the tag map (0: off);
+  without it the measurement tags of SPEC 4 (temperatures, pressures, flows, powers) default to
+  ``FLATLINE_DEFAULT_S`` and the others (flags, speeds, set points, system registers) are off.
+  Time counts only while the plant runs (``plant_running``), so a stop never looks like a stuck
+  sensor, and a real one is found ``flatline_s`` after it stuck.
 
 A period is closed, and its ``Sample`` returned by ``add``, when the first confirmed (or discarded)
 scan of a later period arrives. A partial period at shutdown is dropped on purpose: it is not a
@@ -33,8 +41,17 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 FROZEN = "frozen"
+FLATLINE = "flatline"
 FLAGS_ALL = ("running",)   # min over the period
 FLAGS_ANY = ("cip",)       # max over the period
+MIN_POWER_KW = 20.0        # no running flag: below this compressor power the plant is off
+                           # (the same threshold as model.measured.MIN_POWER_KW)
+FLATLINE_DEFAULT_S = 1800.0
+# the measurement tags of SPEC 4 that get FLATLINE_DEFAULT_S when the tag map says nothing
+FLATLINE_DEFAULT_TAGS = (
+    "T_sink_in", "T_sink_out", "T_source_in", "T_source_out", "V_sink", "V_source",
+    "p_source_in", "p_source_out", "T_suc_LS", "T_dis_LS", "T_suc_HS", "T_dis_HS",
+    "p_suc_LS", "p_dis_LS", "p_suc_HS", "p_dis_HS", "T_c", "T_e", "W_LS", "W_HS")
 
 
 class TagLike(Protocol):
@@ -67,6 +84,7 @@ class Freshness:
     frozen: bool                     # the life counter has stopped changing
     comm_fault: bool                 # the last scan had a communication fault
     last_good_sample_time: float | None   # sample clock of the newest confirmed good scan
+    flat: tuple[str, ...] = ()       # tags flat-lined right now (reason 'flatline')
 
     @property
     def data_stale(self) -> bool:
@@ -79,6 +97,32 @@ class _Scan:
     values: dict[str, float | None]   # good value or None
     reasons: dict[str, str]           # tag -> reason for the bad ones
     comm_error: str | None
+
+
+def plant_running(values: Mapping[str, float | None]) -> bool | None:
+    """Is the heat pump running, from one scan's good values (tag -> value, None when bad)?
+    The running flag when it was read good, else W_LS + W_HS >= MIN_POWER_KW, else None
+    (unknown). A CIP in progress counts as not running."""
+    cip = values.get("cip")
+    if cip is not None and cip > 0.5:
+        return False
+    flag = values.get("running")
+    if flag is not None:
+        return flag >= 0.5
+    power = [values.get("W_LS"), values.get("W_HS")]
+    if all(p is not None for p in power):
+        return sum(power) >= MIN_POWER_KW
+    return None
+
+
+@dataclass
+class _Flat:
+    """Flat-line tracking of one tag."""
+    limit_s: float                   # flat for this long while running: bad
+    tol: float                       # a change larger than this is movement
+    ref: float | None = None         # value the tag has stayed at
+    since: float = 0.0               # sample clock when it started staying (while running)
+    flat: bool = False
 
 
 @dataclass
@@ -100,6 +144,9 @@ class Aggregator:
     exclude : tags not aggregated (e.g. the PLC clock); the life counter never is
     min_good_share : share of a period's scans that must be good for a tag to get a value
     t_start : monotonic time of the start (ages count from here before the first good read)
+
+    A tag's ``flatline_s`` (0 or None: see the module doc), ``scale`` and ``type`` are read when
+    the tag has them.
     """
 
     def __init__(self, tags: Sequence[TagLike], aggregate_s: float, *,
@@ -128,6 +175,12 @@ class Aggregator:
         self._bucket: _Bucket | None = None
         self._last_good_sample_time: float | None = None
         self.frozen_events = 0       # how many times data froze (for logs and tests)
+        self._flat: dict[str, _Flat] = {}
+        for t in tags:
+            limit = flatline_limit(t)
+            if limit is not None and t.name in self.data_tags:
+                self._flat[t.name] = _Flat(limit, _resolution(t))
+        self.flatline_events = 0     # how many times a tag flat-lined
 
     # ------------------------------------------------------------------------------ input
 
@@ -182,7 +235,14 @@ class Aggregator:
     def freshness(self, t_mono: float) -> Freshness:
         stale = tuple(n for n, age in self.max_age.items()
                       if n != self.life_counter and t_mono - self._last_good[n] > age)
-        return Freshness(stale, self._frozen, self._comm_fault, self._last_good_sample_time)
+        flat = tuple(n for n, f in self._flat.items() if f.flat)
+        return Freshness(stale, self._frozen, self._comm_fault, self._last_good_sample_time,
+                         flat)
+
+    @property
+    def flatline_limits(self) -> dict[str, float]:
+        """Tag -> flatline_s, for the tags checked for a flat line."""
+        return {n: f.limit_s for n, f in self._flat.items()}
 
     @property
     def pending(self) -> int:
@@ -215,6 +275,8 @@ class Aggregator:
             return out
         if scan.comm_error is not None:
             b.comm += 1
+        if self._flat:
+            self._flatline(scan)
         any_good = False
         for n in self.data_tags:
             v = scan.values.get(n)
@@ -226,6 +288,26 @@ class Aggregator:
         if any_good:
             self._last_good_sample_time = scan.t_sample
         return out
+
+    def _flatline(self, scan: _Scan) -> None:
+        """Track each tag's flat line on this (confirmed) scan; a flat value is made bad."""
+        running = plant_running(scan.values)
+        t = scan.t_sample
+        for name, f in self._flat.items():
+            v = scan.values.get(name)
+            if v is None:
+                continue                     # bad anyway; the flat line goes on from ref
+            if f.ref is None or abs(v - f.ref) > f.tol:
+                f.ref, f.since, f.flat = v, t, False      # it moves: alive
+                continue
+            if not running:
+                f.since = t                  # time counts only while the plant runs
+            elif not f.flat and t - f.since >= f.limit_s:
+                f.flat = True
+                self.flatline_events += 1
+            if f.flat:                       # stuck stays stuck (also through a stop)
+                scan.values[name] = None
+                scan.reasons[name] = FLATLINE
 
     def _close(self, b: _Bucket) -> Sample:
         values: dict[str, float] = {}
@@ -246,6 +328,23 @@ class Aggregator:
         elif b.comm * 2 >= b.scans:
             quality = "comm fault"
         return Sample(b.start, values, bad, b.scans, good_scans, b.frozen, b.comm, quality)
+
+
+def flatline_limit(tag: Any) -> float | None:
+    """The tag's flat-line time [s of sample clock], or None when it is not checked."""
+    limit = getattr(tag, "flatline_s", None)
+    if limit is None:
+        return FLATLINE_DEFAULT_S if tag.name in FLATLINE_DEFAULT_TAGS else None
+    return float(limit) if limit > 0 else None
+
+
+def _resolution(tag: Any) -> float:
+    """A change of the tag's value larger than this is movement: half a raw step for integer
+    registers (the value is raw * scale + offset), 0 (any change) for floating-point ones."""
+    type_ = getattr(tag, "type", "float32")
+    if type_.startswith("float"):
+        return 0.0
+    return 0.5 * abs(float(getattr(tag, "scale", 1.0)))
 
 
 def _reduce(name: str, goods: list[float]) -> float:

@@ -48,6 +48,7 @@ class TagConfig:
     max_age_s: float
     sentinel: int | float | None = None
     pressure: str | None = None  # gauge | absolute, for pressure units
+    flatline_s: float | None = None  # stuck-sensor time; None: edge.aggregate's default, 0: off
 
     @property
     def count(self) -> int:
@@ -216,7 +217,7 @@ def _cross_checks(top, plc, scan, aggregate, calib_every, window_h, min_samples)
 
 
 _TAG_KEYS = ("register", "address", "type", "byte_order", "scale", "offset", "unit", "range",
-             "max_age_s", "sentinel", "pressure")
+             "max_age_s", "sentinel", "pressure", "flatline_s")
 _TAG_REQUIRED = ("register", "address", "type", "unit", "range", "max_age_s")
 
 
@@ -278,6 +279,10 @@ def _tag(sec: _Section, name: str) -> tuple[TagConfig | None, tuple | None]:
     if unit is not None and unit not in PRESSURE_UNITS and "pressure" in sec.data:
         sec.problem("pressure", f"only for pressure units ({', '.join(PRESSURE_UNITS)}), "
                     f"unit is {unit!r}")
+    # issue 9 item 17 (edge.aggregate's flat-line check): seconds >= 0, 0 = off
+    flatline = sec.number("flatline_s", default=None)
+    if flatline is not None and flatline < 0:
+        sec.problem("flatline_s", f"must be >= 0 (0: no flat-line check), got {flatline:g}")
     place = None
     if register and type_ and address is not None:
         place = (name, register, address, address + register_count(type_))
@@ -285,7 +290,8 @@ def _tag(sec: _Section, name: str) -> tuple[TagConfig | None, tuple | None]:
         return None, place
     return TagConfig(name=name, register=register, address=address, type=type_,
                      byte_order=byte_order, scale=float(scale), offset=float(offset), unit=unit,
-                     range=rng, max_age_s=max_age, sentinel=sentinel, pressure=pressure), place
+                     range=rng, max_age_s=max_age, sentinel=sentinel, pressure=pressure,
+                     flatline_s=flatline), place
 
 
 def _overlaps(p: _Problems, file: str, placed: list[tuple[str, str, int, int]]) -> None:

@@ -13,7 +13,12 @@ One scan cycle, every ``scan_interval_s`` on the monotonic clock:
 5. write the whole advisory block - heartbeat, status word, values - in ONE FC16 request.
 
 The sample clock is the wall clock, or with ``time_source="plc"`` the PLC's clock register (plant
-time: the accelerated simulator, or a PLC whose clock the plant's history should follow).
+time: the accelerated simulator, or a PLC whose clock the plant's history should follow). Every
+reading is checked for plausibility (``edge.sampleclock``: against the host clock and the last
+accepted reading) before the scan is aggregated, stored, pruned by or scheduled on; a rejected
+reading's scan still counts for freshness but is not aggregated. A lasting jump (a real clock
+correction) is accepted after it persisted for ``ClockPolicy.confirm_s``, logged, and the
+calibration schedule starts afresh on the new clock.
 Freshness (max age, frozen life counter) is always judged on the monotonic clock.
 
 Status bits (gateway.yaml ``advisory.status_bits``; names are what matters, numbers are config):
@@ -26,8 +31,21 @@ Status bits (gateway.yaml ``advisory.status_bits``; names are what matters, numb
 - ``model_infeasible``: the last set-point optimization failed (no feasible point in the window);
 - ``comm_fault``: the last poll got no usable answer, or one did since the previous successful
   advisory write (so an HMI sees the bit after a PLC restart, for one cycle at least);
-- ``advice_stale``: the values are from an earlier calibration: the last attempt failed, or the
-  advice is older than 1.5 calibration intervals (e.g. not enough usable data: plant off, CIP).
+- ``advice_stale``: the values are not a current advice: the last attempt failed, there are no
+  values at all, or they are older than 1.5 calibration intervals (e.g. not enough usable data:
+  plant off, CIP), or their age is unknown (no sample clock yet, or the advice is from a later
+  time than the sample clock now shows: ``advice_age_s`` then holds its type's maximum);
+- ``storage_fault``: the history or the state directory is not writable (locked, full,
+  read-only); the advice is still computed and written, rows wait in memory and storage recovers
+  by itself (the advisor's ``storage_fault``);
+- ``clock_fault``: the sample clock of this scan was rejected as implausible, or one was since the
+  previous successful advisory write;
+- ``sensor_fault``: while the plant runs and the PLC answers, a required tag has flat-lined
+  (``edge.aggregate``, reason ``flatline``) or has not been read good for its ``max_age_s``.
+
+The first block already carries the right bits: ``calibration_failed`` follows the calibrations
+this loop has seen (restored at start, collected since), never a calibration still running, and
+the advice's age is judged on the sample clock of the scan being written.
 """
 from __future__ import annotations
 
@@ -38,24 +56,26 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from edge.advisory import encode_advisory
-from edge.aggregate import Aggregator, Freshness, Sample
+from edge.aggregate import MIN_POWER_KW, Aggregator, Freshness, Sample, plant_running
+from edge.codec import raw_limits
 from edge.config import GatewayConfig
 from edge.plc import PlcClient, PlcError, PlcExceptionReply, ReadResult
+from edge.repeatlog import RepeatLog
+from edge.sampleclock import ClockPolicy, SampleClock
 
 log = logging.getLogger(__name__)
 
 TIME_SOURCES = ("wall", "plc")
 ADVICE_STALE_INTERVALS = 1.5
 MAX_FAILED_CYCLES = 10      # consecutive cycles raising an unexpected error: exit code 1
-MIN_POWER_KW = 20.0         # no running flag: below this compressor power the plant is off
-                            # (the same threshold as model.measured.MIN_POWER_KW)
 STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_failed",
-                "model_infeasible", "comm_fault", "advice_stale")
+                "model_infeasible", "comm_fault", "advice_stale", "storage_fault", "clock_fault",
+                "sensor_fault")
 # advisory fields the loop fills itself; an advisor provides the others
 LOOP_FIELDS = ("heartbeat", "status", "last_update", "advice_age_s")
 
@@ -114,7 +134,13 @@ class Advisor(Protocol):
 
     @property
     def has_calibration(self) -> bool:
-        """True when a fouling calibration exists (restored or computed)."""
+        """True when a fouling calibration exists (restored or computed). The loop reads it
+        once, at startup; afterwards it follows the calibrations it collects."""
+
+    @property
+    def storage_fault(self) -> str | None:
+        """Why the history or the state directory is not writable right now, None when they
+        are (optional: an advisor without it never sets the storage_fault bit)."""
 
 
 @dataclass
@@ -134,6 +160,9 @@ class Snapshot:
     last_scan: dict[str, float | None] = field(default_factory=dict)
     comm_error: str | None = None
     errors: int = 0                      # unexpected errors survived (logged with traceback)
+    clock_rejected: int = 0              # scans whose sample clock was rejected
+    clock_jumps: int = 0                 # lasting clock jumps accepted as corrections
+    storage_fault: str | None = None     # the advisor's, as of the last cycle
 
 
 class Gateway:
@@ -149,12 +178,19 @@ class Gateway:
     install_signals : handle SIGTERM/SIGINT (only in the main thread)
     shutdown_timeout_s : how long shutdown waits for a running calibration
     notifier : told when the gateway is ready, alive (every cycle) and stopping (systemd)
+    clock : limits of the sample-clock check (edge.sampleclock.ClockPolicy; default limits)
+    host_clock : the host's wall clock [epoch s] the sample clock is checked against (injected
+        in tests)
+    required_tags : tags whose flat line or staleness sets sensor_fault (default: every
+        aggregated tag; the service passes the model's required inputs)
     """
 
     def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
                  time_source: str = "wall", clock_tag: str = "plc_clock",
                  monotonic: Callable[[], float] = time.monotonic, install_signals: bool = True,
-                 shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None) -> None:
+                 shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None,
+                 clock: ClockPolicy | None = None, host_clock: Callable[[], float] = time.time,
+                 required_tags: Iterable[str] | None = None) -> None:
         if time_source not in TIME_SOURCES:
             raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
         tag_names = {t.name for t in cfg.tags}
@@ -173,6 +209,15 @@ class Gateway:
         self.aggregator = Aggregator(
             cfg.tags, cfg.aggregate_s, life_counter=cfg.life_counter_tag,
             exclude=(clock_tag,) if clock_tag in tag_names else (), t_start=monotonic())
+        self.clock = SampleClock(clock, rate=1.0 if time_source == "wall" else None)
+        self._host = host_clock
+        self._clock_log = RepeatLog(log, "clock check", level=logging.WARNING,
+                                    monotonic=monotonic)
+        self._clock_since_write = False
+        data = set(self.aggregator.data_tags)
+        self.required = tuple(n for n in (required_tags if required_tags is not None else data)
+                              if n in data)
+        self._has_calibration = False      # as far as this loop knows (startup, collected)
         self.snapshot = Snapshot()
         self.changed = asyncio.Event()   # set after every cycle (tests and the demo wait on it)
         self._stop = asyncio.Event()
@@ -216,6 +261,7 @@ class Gateway:
         if self.install_signals:
             self._install_signal_handlers()
         restored = await asyncio.to_thread(self.advisor.restored)
+        self._has_calibration = bool(self.advisor.has_calibration)
         if restored is not None:
             self._advice = restored
             self._calibration_due = restored.t + self.cfg.calibration_interval_s
@@ -301,7 +347,9 @@ class Gateway:
             self._wake.clear()  # before collecting: a calibration finishing later wakes us again
         result = await self.plc.read_all()
         t_mono = self._mono()
-        t_sample = self._sample_time(result)
+        t_sample = self._check_clock(self._sample_time(result), t_mono)
+        if t_sample is not None:
+            self.snapshot.sample_time = t_sample
         if result.comm_error is not None:
             self._comm_since_write = True
         samples = self.aggregator.add(t_sample, t_mono, result.values, result.comm_error)
@@ -315,7 +363,6 @@ class Gateway:
         snap = self.snapshot
         snap.cycles += 1
         self.notifier.alive()
-        snap.sample_time = t_sample if t_sample is not None else snap.sample_time
         snap.comm_error = result.comm_error
         snap.last_scan = {n: v.value for n, v in result.values.items()}
         self.changed.set()
@@ -327,6 +374,28 @@ class Gateway:
         v = result.values.get(self.clock_tag)
         return v.value if v is not None and v.bad is None else None
 
+    def _check_clock(self, t: float | None, t_mono: float) -> float | None:
+        """The scan's sample time if plausible (edge.sampleclock), else None (and counted)."""
+        if t is None:
+            return None
+        v = self.clock.check(t, t_mono, self._host())
+        if v.t is None:
+            self.snapshot.clock_rejected += 1
+            self._clock_since_write = True
+            self._clock_log.fail(f"{v.rejected}; the scan is not aggregated "
+                                 f"({self.snapshot.clock_rejected} rejected since start)")
+            return None
+        self._clock_log.ok()
+        if v.jump_s is not None:
+            self.snapshot.clock_jumps += 1
+            log.warning("sample clock: a jump of %+.0f s persisted for %g s: accepted as a "
+                        "clock correction (now %s); calibration is planned afresh on the new "
+                        "clock", v.jump_s, self.clock.policy.confirm_s, _fmt_time(v.t))
+            self._calibration_due = -math.inf
+            self._skipped_at = None
+            self._last_sample_end = None    # samples of the old clock schedule nothing now
+        return v.t
+
     async def _ingest(self, samples: list[Sample]) -> None:
         try:
             await asyncio.to_thread(self.advisor.ingest, samples)
@@ -334,7 +403,13 @@ class Gateway:
             self.snapshot.errors += 1
             log.exception("processing or storing %d sample(s) failed: %s", len(samples), exc)
         self.snapshot.samples += len(samples)
-        self._last_sample_end = max(s.timestamp for s in samples) + self.cfg.aggregate_s
+        # schedule on samples up to the clock now: after the clock was set back (an accepted
+        # correction), the old clock's last period is stored but calibrates nothing
+        now = self.clock.last
+        ends = [s.timestamp + self.cfg.aggregate_s for s in samples
+                if now is None or s.timestamp <= now]
+        if ends:
+            self._last_sample_end = max(ends)
 
     # ----------------------------------------------------------------------- calibration
 
@@ -387,6 +462,8 @@ class Gateway:
         self._skipping = False
         self._calibration_due = t_end + self.cfg.calibration_interval_s
         self._last_attempt = adv
+        if adv.calibration_ok:
+            self._has_calibration = True
         self.snapshot.calibrations += 1
         self.snapshot.advice_message = adv.message
         if adv.ok:
@@ -402,32 +479,53 @@ class Gateway:
         bits: set[str] = set()
         if fresh.data_stale or result.comm_error is not None:
             bits.add("data_stale")
-        running = result.values.get("running")
-        if running is not None and running.bad is None:
-            if running.value < 0.5:
+        good = {n: v.value for n, v in result.values.items() if v.bad is None}
+        running = good.get("running")
+        if running is not None:
+            if running < 0.5:
                 bits.add("heat_pump_off")
         else:   # no running flag: infer it from the compressor power, as the model side does
-            power = [result.values.get(n) for n in ("W_LS", "W_HS")]
-            if all(p is not None and p.bad is None for p in power) and \
-                    sum(p.value for p in power) < MIN_POWER_KW:
+            power = [good.get(n) for n in ("W_LS", "W_HS")]
+            if None not in power and sum(power) < MIN_POWER_KW:
                 bits.add("heat_pump_off")
-        cip = result.values.get("cip")
-        if cip is not None and cip.bad is None and cip.value > 0.5:
+        cip = good.get("cip")
+        if cip is not None and cip > 0.5:
             bits.add("cip_detected")
         last = self._last_attempt
-        if not self.advisor.has_calibration or (last is not None and not last.calibration_ok):
+        if not self._has_calibration or (last is not None and not last.calibration_ok):
             bits.add("calibration_failed")
         if last is not None and last.calibration_ok and not last.optimization_ok:
             bits.add("model_infeasible")
         if result.comm_error is not None or self._comm_since_write:
             bits.add("comm_fault")
         adv = self._advice
-        if adv is not None:
-            now = self.snapshot.sample_time if self.snapshot.sample_time is not None else adv.t
-            too_old = now - adv.t > ADVICE_STALE_INTERVALS * self.cfg.calibration_interval_s
-            if too_old or (last is not None and not last.ok):
+        if adv is None or (last is not None and not last.ok):
+            bits.add("advice_stale")
+        else:
+            age = self._advice_age()
+            if age is None or age > ADVICE_STALE_INTERVALS * self.cfg.calibration_interval_s:
                 bits.add("advice_stale")
+        fault = getattr(self.advisor, "storage_fault", None)
+        self.snapshot.storage_fault = fault
+        if fault is not None:
+            bits.add("storage_fault")
+        if self._clock_since_write:
+            bits.add("clock_fault")
+        if (plant_running(good) and result.comm_error is None and not fresh.frozen
+                and set(self.required) & (set(fresh.stale) | set(fresh.flat))):
+            bits.add("sensor_fault")
         return {b for b in bits if b in self._bits}
+
+    def _advice_age(self) -> float | None:
+        """Age of the advice on the sample clock [s]; None when unknown: no sample clock yet, or
+        the advice is from a later time than the clock now shows (it was set back)."""
+        adv, now = self._advice, self.snapshot.sample_time
+        if adv is None or now is None:
+            return None
+        age = now - adv.t
+        if age < -(self.cfg.aggregate_s + self.clock.policy.back_tolerance_s):
+            return None
+        return max(0.0, age)
 
     def _values(self, t_sample: float | None) -> dict[str, float]:
         adv = self._advice
@@ -435,11 +533,12 @@ class Gateway:
         if adv is not None:
             values.update((k, float(v)) for k, v in adv.values.items()
                           if k in self._fields and k not in LOOP_FIELDS)
-            now = t_sample if t_sample is not None else self.snapshot.sample_time or adv.t
             if "last_update" in self._fields:
                 values["last_update"] = int(max(0.0, adv.t))
             if "advice_age_s" in self._fields:
-                values["advice_age_s"] = int(min(max(0.0, now - adv.t), 2**32 - 1))
+                top = int(raw_limits(self.cfg.advisory.field("advice_age_s").type)[1])
+                age = self._advice_age()
+                values["advice_age_s"] = top if age is None else int(min(age, top))
         return values
 
     async def _write(self, bits: set[str], t_sample: float | None) -> None:
@@ -479,6 +578,7 @@ class Gateway:
             self._write_refused = False
         snap.writes_ok += 1
         self._comm_since_write = False   # this write carried the comm_fault bit, if it was due
+        self._clock_since_write = False  # ... and the clock_fault bit
 
     # ------------------------------------------------------------------------ for callers
 

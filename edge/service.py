@@ -36,6 +36,7 @@ from edge import statefiles
 from edge.aggregate import Sample, sample_row
 from edge.config import GatewayConfig
 from edge.loop import Advice, Gateway, Notifier
+from edge.repeatlog import RepeatLog
 from edge.statefiles import StateError
 from edge.store import HistoryStore
 from model import measured
@@ -150,10 +151,36 @@ class ModelAdvisor:
         self._context: deque[dict] = deque(maxlen=CONTEXT_ROWS)
         self._context_loaded = False
         self._lock = threading.Lock()     # ingest and advise may overlap (two worker threads)
+        # issue 9 item 8: a state document that could not be saved is kept and retried
+        self._unsaved: dict | None = None
+        self._state_fault: str | None = None
+        self._state_log = RepeatLog(log, f"state directory {getattr(state_io, 'dir', '?')}")
 
     @property
     def has_calibration(self) -> bool:
         return self.state.fouling is not None
+
+    @property
+    def storage_fault(self) -> str | None:
+        """Why the history or the state directory is not writable right now (None: both are)."""
+        return self.store.fault or self._state_fault
+
+    def _save_fouling(self, doc: dict) -> None:
+        """Persist the fouling calibration; on failure keep it for a retry and report it
+        (storage_fault), never raise: the advice is still written to the block."""
+        try:
+            self.state_io.save_fouling(doc)
+        except (StateError, OSError) as exc:      # read-only, full disk, cannot create
+            self._unsaved, self._state_fault = doc, str(exc)
+            self._state_log.fail(f"fouling calibration not persisted (kept in memory, retried "
+                                 f"with every sample): {exc}")
+            return
+        self._unsaved, self._state_fault = None, None
+        self._state_log.ok("fouling calibration saved")
+
+    def _retry_storage(self) -> None:
+        if self._unsaved is not None:
+            self._save_fouling(self._unsaved)
 
     # ------------------------------------------------------------------------- ingest
 
@@ -162,6 +189,7 @@ class ModelAdvisor:
         if not samples:
             return []
         with self._lock:
+            self._retry_storage()
             self._load_context()
             agg = self.cfg.aggregate_s
             rows: list[dict] = []
@@ -229,10 +257,7 @@ class ModelAdvisor:
                                        message=f"fouling calibration failed: {result.message}",
                                        detail={"calibration": result.to_dict()}))
         doc = result.to_dict()
-        try:
-            self.state_io.save_fouling(doc)
-        except StateError as exc:      # disk full, read-only: keep going, say so
-            log.error("fouling calibration not persisted: %s", exc)
+        self._save_fouling(doc)        # disk full, read-only: kept, retried, storage_fault
         self.state.fouling = doc
         adaptive = result.apply(self.fixed)
         values, detail = self._fouling_values(window, result, adaptive)
@@ -409,11 +434,15 @@ class GatewayService:
     """Everything ``hp-edge run`` starts: history store, state, model advisor, gateway loop.
 
     Construction loads and checks state and plant (``StartupError``: exit code 2, nothing
-    connected). ``await run()`` runs the gateway until stopped and closes the store.
+    connected). A history that is locked, full or not writable does not stop the start: the
+    store runs without it and retries (``storage_fault``). ``await run()`` runs the gateway until
+    stopped and closes the store. ``clock``: the sample-clock limits
+    (``edge.sampleclock.ClockPolicy``; default limits when None).
     """
 
     def __init__(self, cfg: GatewayConfig, *, time_source: str = "wall",
-                 install_signals: bool = True, plc=None, shutdown_timeout_s: float = 10.0) -> None:
+                 install_signals: bool = True, plc=None, shutdown_timeout_s: float = 10.0,
+                 clock=None) -> None:
         state = StateDir(cfg.state_dir, cfg.path.parent / statefiles.SURROGATE)
         self.store = HistoryStore(cfg.history_db, cfg.history_retention_days,
                                   aggregate_s=cfg.aggregate_s)
@@ -425,7 +454,8 @@ class GatewayService:
             self.advisor = ModelAdvisor(cfg, self.store, state)
             self.gateway = Gateway(cfg, self.advisor, plc=plc, time_source=time_source,
                                    install_signals=install_signals,
-                                   shutdown_timeout_s=shutdown_timeout_s, notifier=SdNotify())
+                                   shutdown_timeout_s=shutdown_timeout_s, notifier=SdNotify(),
+                                   required_tags=measured.REQUIRED, clock=clock)
         except BaseException:
             self.store.close()
             raise

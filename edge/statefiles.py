@@ -48,7 +48,12 @@ def _jsonable(v):
 
 
 def write_state(name: str, doc: dict, state_dir: str | os.PathLike = DEFAULT_STATE_DIR) -> Path:
-    """Atomically write ``doc`` as ``state_dir/name``; adds ``saved_at`` (UTC ISO 8601)."""
+    """Atomically write ``doc`` as ``state_dir/name``; adds ``saved_at`` (UTC ISO 8601).
+
+    Raises StateError (naming the file and the OS error) for every failure of the file system:
+    a directory that cannot be created or written (read-only, permissions), a full disk, an I/O
+    error. The previous document, if any, is then left as it was; no temporary file remains.
+    """
     _check(name)
     d = Path(state_dir)
     try:
@@ -58,7 +63,10 @@ def write_state(name: str, doc: dict, state_dir: str | os.PathLike = DEFAULT_STA
     target = d / name
     body = json.dumps({**_jsonable(doc), "saved_at": datetime.now(timezone.utc).isoformat()},
                       indent=1, allow_nan=False)
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=d)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=d)
+    except OSError as exc:
+        raise StateError(f"cannot write state file {target}: {exc}") from exc
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(body)
@@ -69,7 +77,7 @@ def write_state(name: str, doc: dict, state_dir: str | os.PathLike = DEFAULT_STA
     except OSError as exc:
         try:
             os.unlink(tmp)
-        except FileNotFoundError:
+        except OSError:
             pass
         raise StateError(f"cannot write state file {target}: {exc}") from exc
     try:
@@ -78,6 +86,9 @@ def write_state(name: str, doc: dict, state_dir: str | os.PathLike = DEFAULT_STA
         return target               # platforms without directory fds: the rename is still atomic
     try:
         os.fsync(dfd)
+    except OSError as exc:
+        raise StateError(f"state file {target} written, but the directory {d} could not be "
+                         f"synced (the rename may not survive a power cut): {exc}") from exc
     finally:
         os.close(dfd)
     return target

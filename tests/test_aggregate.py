@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -168,3 +169,106 @@ def test_argument_checks():
         Aggregator(TAGS, 0.0)
     with pytest.raises(ValueError):
         Aggregator(TAGS, 60.0, life_counter="nope")
+
+
+# ------------------------------------------------------------- stuck sensors (issue 9 item 17)
+
+@dataclass(frozen=True)
+class FTag:
+    name: str
+    max_age_s: float = 30.0
+    flatline_s: float | None = None
+    scale: float = 1.0
+    type: str = "float32"
+
+
+FLAT_TAGS = (FTag("T", flatline_s=120.0, scale=0.1, type="int16"), FTag("W", flatline_s=120.0),
+             FTag("running"), FTag("cip"), FTag("life_counter", 12.0), FTag("clock"))
+
+
+def flat_feed() -> Feed:
+    return Feed(Aggregator(FLAT_TAGS, 60.0, life_counter="life_counter", exclude=("clock",),
+                           t_start=6000.0))
+
+
+def test_a_stuck_value_while_running_is_bad_flatline_after_flatline_s():
+    f = flat_feed()
+    w = iter(range(10_000))
+    for _ in range(24):                       # W moves, T stays at 20.0 for 2 minutes
+        f.scan(T=20.0, W=100.0 + next(w))
+    assert not f.agg.freshness(f.t).flat
+    f.scan(12, T=20.0, W=100.0 + next(w))     # now longer than its 120 s
+    assert f.agg.freshness(f.t).flat == ("T",)
+    f.scan(13, T=20.3, W=100.0 + next(w))      # it moves again
+    assert f.agg.freshness(f.t).flat == ()
+    s2, s3 = f.samples[2], f.samples[3]
+    assert math.isnan(s2.values["T"]) and s2.bad == {"T": "flatline"}
+    assert math.isfinite(s2.values["W"])                             # W is fine
+    assert s3.values["T"] == pytest.approx(20.3) and "T" not in s3.bad
+    assert f.agg.flatline_events == 1
+    assert sample_row(s2)["quality"] == "bad: T flatline"
+
+
+def test_a_change_below_the_resolution_is_no_movement():
+    """T is int16 x0.1: half a raw step (0.05) is noise of the register, not movement."""
+    f = flat_feed()
+    for k in range(40):
+        f.scan(T=20.0 + 0.04 * (k % 2), W=100.0 + k)
+    assert f.agg.freshness(f.t).flat == ("T",)
+    f2 = flat_feed()
+    for k in range(40):
+        f2.scan(T=20.0 + 0.1 * (k % 2), W=100.0 + k)
+    assert f2.agg.freshness(f2.t).flat == ()
+
+
+def test_flat_while_the_plant_is_off_is_no_fault_and_stuck_stays_stuck():
+    f = flat_feed()
+    f.scan(60, T=20.0, W=5.0, running=0.0)              # 5 min off, everything flat
+    assert f.agg.freshness(f.t).flat == ()
+    f.scan(20, T=20.0, W=5.0, running=1.0)              # running: counts from the start
+    assert f.agg.freshness(f.t).flat == ()
+    f.scan(10, T=20.0, W=5.0, running=1.0)
+    assert set(f.agg.freshness(f.t).flat) == {"T", "W"}
+    f.scan(5, T=20.0, W=5.0, running=0.0)               # a stop does not heal a stuck sensor
+    assert set(f.agg.freshness(f.t).flat) == {"T", "W"}
+
+
+def test_without_a_running_flag_the_power_decides():
+    from edge.aggregate import plant_running
+    assert plant_running({"running": 1.0, "cip": 1.0}) is False      # CIP: not running
+    assert plant_running({"running": None, "W_LS": 10.0, "W_HS": 15.0}) is True
+    assert plant_running({"running": None, "W_LS": 10.0, "W_HS": 5.0}) is False
+    assert plant_running({"W_LS": 10.0}) is None
+
+
+def test_flatline_defaults_and_the_tag_map_key(tmp_path):
+    import shutil
+
+    import yaml
+
+    from edge.aggregate import FLATLINE_DEFAULT_S, flatline_limit
+    from edge.config import ConfigError, load_config
+
+    assert flatline_limit(FTag("T_source_out")) == FLATLINE_DEFAULT_S == 1800.0
+    assert flatline_limit(FTag("N_LS")) is None and flatline_limit(FTag("p_m_sp")) is None
+    assert flatline_limit(FTag("T_source_out", flatline_s=0.0)) is None
+    assert flatline_limit(FTag("N_LS", flatline_s=600.0)) == 600.0
+
+    root = Path(__file__).resolve().parent.parent / "config"
+    for name in ("gateway.yaml", "tags.yaml"):
+        shutil.copy(root / name, tmp_path / name)
+    doc = yaml.safe_load((tmp_path / "tags.yaml").read_text())
+    doc["tags"]["T_e"]["flatline_s"] = 600
+    doc["tags"]["T_c"]["flatline_s"] = -1
+    (tmp_path / "tags.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError) as info:
+        load_config(tmp_path / "gateway.yaml", load_plant=False)
+    assert [p.split("tags.yaml: ")[1] for p in info.value.problems] == [
+        "tag 'T_c': key 'flatline_s': must be >= 0 (0: no flat-line check), got -1"]
+    doc["tags"]["T_c"]["flatline_s"] = 0
+    (tmp_path / "tags.yaml").write_text(yaml.safe_dump(doc))
+    cfg = load_config(tmp_path / "gateway.yaml", load_plant=False)
+    agg = Aggregator(cfg.tags, 60.0, life_counter="life_counter", exclude=("plc_clock",))
+    limits = agg.flatline_limits
+    assert limits["T_e"] == 600.0 and "T_c" not in limits and limits["T_source_out"] == 1800.0
+    assert not {"N_LS", "running", "cip", "p_m_sp", "plc_clock", "life_counter"} & set(limits)

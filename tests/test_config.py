@@ -19,7 +19,7 @@ TOP_KEYS = ("plc, tags_file, plant_file, scan_interval_s, aggregate_s, "
             "calibration_interval_s, calibration_window_h, min_window_samples, optimizer, "
             "life_counter_tag, state_dir, history_db, history_retention_days, advisory")
 TAG_KEYS = ("register, address, type, byte_order, scale, offset, unit, range, max_age_s, "
-            "sentinel, pressure")
+            "sentinel, pressure, flatline_s")
 
 
 # -------------------------------------------------------------------------- default config

@@ -69,7 +69,7 @@ def sims():
 
 
 def gateway_cfg(port: int, tmp: Path, state_from: Path | None, *, scan: float, max_age: float,
-                **kw):
+                flatline: dict | None = None, **kw):
     state = tmp / "state"
     state.mkdir(parents=True, exist_ok=True)
     if state_from is not None:
@@ -78,7 +78,9 @@ def gateway_cfg(port: int, tmp: Path, state_from: Path | None, *, scan: float, m
     # reconnect back-off at most half a scan: every cycle may try to reconnect
     plc = replace(CFG.plc, port=port, timeout_s=0.8 * scan, reconnect_min_s=0.5 * scan,
                   reconnect_max_s=0.5 * scan)
-    tags = tuple(replace(t, max_age_s=max_age) for t in CFG.tags)
+    flatline = flatline or {}
+    tags = tuple(replace(t, max_age_s=max_age, flatline_s=flatline.get(t.name, t.flatline_s))
+                 for t in CFG.tags)
     return replace(CFG, plc=plc, tags=tags, scan_interval_s=scan, state_dir=state,
                    history_db=tmp / "history.sqlite", **kw)
 
@@ -121,6 +123,8 @@ class Rig:
         if exc[0] is None:
             assert rc == 0
             assert self.gw.snapshot.errors == 0
+            # the plant clock of a live simulator is never mistaken for a glitch (issue 9)
+            assert self.gw.snapshot.clock_rejected == 0
 
     async def until(self, predicate, timeout):
         return await self.gw.wait_until(predicate, timeout)
@@ -282,6 +286,44 @@ def test_nan_and_out_of_range_values_are_marked_bad_and_excluded(sims, commissio
     good_after = rig.history("SELECT COUNT(*) FROM samples WHERE ts > ? AND T_source_in IS NOT "
                              "NULL AND V_source IS NOT NULL", int(t_off) + 60)[0][0]
     assert good_after >= 2
+
+
+def test_a_stuck_sensor_is_flagged_flatline_and_sets_sensor_fault(sims, commissioned, tmp_path):
+    """The simulator's `stuck` fault on T_source_out (the campaign's frozen sensor): after its
+    flatline_s (here 10 plant minutes) the tag is bad with reason 'flatline', the samples are
+    unusable, the HMI sees sensor_fault; when the sensor moves again all of it clears."""
+    flat_s = 600.0
+
+    async def scenario():
+        async with Rig(sims, tmp_path, commissioned, speed=600, scan=0.05, max_age=2.0,
+                       flatline={"T_source_out": flat_s}) as rig:
+            await rig.until(lambda s: s.samples >= 5, 20)
+            assert "sensor_fault" not in rig.gw.snapshot.status_bits
+            rig.sim.faults.enable("stuck", tag="T_source_out")
+            t_on = rig.sim.plant_time
+            await rig.until(lambda s: "sensor_fault" in s.status_bits, 20)
+            n = rig.gw.snapshot.samples
+            await rig.until(lambda s: s.samples >= n + 5, 20)
+            blk = await block(rig.sim)
+            rig.sim.faults.disable("stuck", tag="T_source_out")
+            t_off = rig.sim.plant_time
+            await rig.until(lambda s: "sensor_fault" not in s.status_bits, 20)
+            n = rig.gw.snapshot.samples
+            await rig.until(lambda s: s.samples >= n + 3, 20)
+            return rig, blk, t_on, t_off
+    rig, blk, t_on, t_off = run(scenario())
+    assert "sensor_fault" in blk["status_bits"] and "data_stale" not in blk["status_bits"]
+    stuck = rig.history("SELECT T_source_out, T_source_in, usable, bad FROM samples WHERE ts >= ? "
+                        "AND ts + 60 <= ?", int(t_on + flat_s) + 60, int(t_off))
+    assert len(stuck) >= 3
+    for T_out, T_in, usable, bad in stuck:
+        assert T_out is None and T_in is not None and usable == 0
+        assert json.loads(bad)["T_source_out"] == "flatline"
+    before = rig.history("SELECT COUNT(*) FROM samples WHERE ts + 60 <= ? AND T_source_out IS "
+                         "NOT NULL", int(t_on))[0][0]
+    after = rig.history("SELECT COUNT(*) FROM samples WHERE ts > ? AND T_source_out IS NOT NULL",
+                        int(t_off))[0][0]
+    assert before >= 4 and after >= 1
 
 
 def test_bad_config_exits_2_and_connects_to_nothing(tmp_path, capsys):

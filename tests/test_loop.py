@@ -3,6 +3,8 @@ last good advice kept on failure, calibration off the event loop, signals and sh
 from __future__ import annotations
 
 import asyncio
+import json
+import logging
 import math
 import os
 import signal
@@ -17,6 +19,7 @@ from edge.advisory import decode_advisory
 from edge.config import load_config
 from edge.loop import Advice, Gateway
 from edge.plc import PlcCommError, ReadResult, TagValue
+from edge.sampleclock import ClockPolicy
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -35,10 +38,17 @@ GOOD = {"T_sink_in": 40.0, "T_sink_out": 68.0, "T_source_in": 24.0, "T_source_ou
         "cip": 0.0, "p_m_sp": 16.0}
 
 
-class FakePlc:
-    """Plays the PLC: every read advances a fake clock by one minute of plant time."""
+FLAGS = ("running", "cip")
+T0 = 1_709_251_200.0
 
-    def __init__(self, cfg, t0: float = 1_709_251_200.0, step: float = 60.0):
+
+class FakePlc:
+    """Plays the PLC: every read advances a fake clock by one minute of plant time. Measured
+    values move by a few resolution steps from read to read, as a live sensor does (so the
+    flat-line check sees no stuck sensor); ``next_clock`` replaces the clock register of the
+    next reads (a corrupt or glitched read)."""
+
+    def __init__(self, cfg, t0: float = T0, step: float = 60.0):
         self.plc, self.advisory = cfg.plc, cfg.advisory
         self.step = step
         self.tags = cfg.tags
@@ -48,6 +58,7 @@ class FakePlc:
         self.fail_reads = 0          # the next n reads get no answer
         self.frozen = False
         self.override: dict[str, TagValue] = {}
+        self.next_clock: list[float] = []
         self.writes: list[list[int]] = []
         self.closed = False
 
@@ -61,8 +72,10 @@ class FakePlc:
         self.connected = True
         if not self.frozen:
             self.life += 1
-        vals = {n: TagValue(n, v) for n, v in GOOD.items()}
-        vals["plc_clock"] = TagValue("plc_clock", self.t)
+        jitter = 0.1 * (self.life % 3)
+        vals = {n: TagValue(n, v if n in FLAGS else v + jitter) for n, v in GOOD.items()}
+        vals["plc_clock"] = TagValue("plc_clock", self.next_clock.pop(0) if self.next_clock
+                                     else self.t)
         vals["life_counter"] = TagValue("life_counter", float(self.life))
         vals.update(self.override)
         return ReadResult(vals, self.t, 0.0, 2, None)
@@ -490,18 +503,221 @@ def test_a_failing_cycle_is_logged_and_ten_in_a_row_exit_1(cfg):
     assert rc == 1 and gw.snapshot.errors == 10
 
 
-def test_sample_clock_going_back_does_not_block_calibration(cfg):
+def test_a_clock_set_back_is_rejected_then_accepted_as_a_correction(cfg):
+    """Going back 10 h: rejected (clock_fault) until the new clock persisted (here 3 reads),
+    then accepted; the advice is then from the "future": advice_stale and an unknown age
+    (4294967295), never age 0; calibration restarts on the new clock."""
     async def go():
         adv = FakeAdvisor(["ok", "ok"])
+        gw, plc = gateway(cfg, adv, clock=ClockPolicy(confirm_s=0.0, confirm_reads=3))
+        await gw.startup()
+        await _advise_until(gw, plc, adv, 1)
+        await cycles(gw, 1)
+        plc.t -= 10 * 3600.0                 # PLC clock reset / a fresh simulator
+        await cycles(gw, 3)
+        blocks = [list(w) for w in plc.writes[-3:]]
+        await _advise_until(gw, plc, adv, 2)
+        await gw.shutdown()
+        return adv.calls, blocks, gw.snapshot
+    calls, (rej1, rej2, accepted), snap = run(go())
+    assert rej1[1] == rej2[1] == 0x0200                      # clock_fault, the advice is fine
+    assert accepted[1] == 0x0040                             # advice_stale: from the "future"
+    assert accepted[28:30] == [0xFFFF, 0xFFFF]               # its age is unknown, not 0
+    assert calls[1] < calls[0] - 9 * 3600.0                   # calibrated on the new clock
+    assert snap.clock_rejected == 2 and snap.clock_jumps == 1
+
+
+def test_rejected_clock_readings_are_counted_and_logged_at_a_bounded_rate(cfg, caplog):
+    async def go():
+        gw, plc = gateway(cfg)
+        await gw.startup()
+        await cycles(gw, 3)
+        plc.next_clock = [4294967295.0] * 50
+        await cycles(gw, 52)
+        await gw.shutdown()
+        return gw.snapshot
+    snap = run(go())
+    assert snap.clock_rejected == 50
+    lines = [r.getMessage() for r in caplog.records if r.name == "edge.loop"
+             and r.levelno >= logging.WARNING and r.getMessage().startswith("clock check")]
+    assert len(lines) == 2
+    assert lines[0].startswith("clock check: sample clock 2106-02-07T06:28:15Z is ")
+    assert lines[0].endswith("the scan is not aggregated (1 rejected since start) (repeats are "
+                             "summarised every 600 s)")
+    assert lines[1].startswith("clock check: recovered after 50 failure(s) in ")
+
+
+def test_a_corrupt_clock_read_and_a_one_day_glitch_are_neither_stored_nor_scheduled(cfg):
+    """0xFFFF 0xFFFF and +1 day in the PLC clock register: clock_fault in that cycle's block,
+    no sample at that time, the calibration cadence goes on (it was blocked for 90 min)."""
+    mono = FakeMono()
+
+    async def go():
+        adv = FakeAdvisor(["ok", "ok", "ok"])
+        gw, plc = gateway(cfg, adv, monotonic=mono)
+        await gw.startup()
+        words = []
+        for k in range(20):
+            if k == 8:
+                plc.next_clock = [4294967295.0]
+            if k == 12:
+                plc.next_clock = [plc.t + plc.step + 86400.0]
+            mono.t += 1.0                       # a scan per second: the PLC clock runs at 60x
+            await cycles(gw, 1)
+            await asyncio.sleep(0.01)           # let the calibration thread finish
+            words.append(plc.writes[-1][1])
+        await gw.shutdown()
+        return adv, words, gw.snapshot
+    adv, words, snap = run(go())
+    assert words[8] & 0x0200 and words[12] & 0x0200          # clock_fault on the glitch cycles
+    assert not words[9] & 0x0200 and not words[13] & 0x0200 and not words[19] & 0x0200
+    assert snap.clock_rejected == 2
+    stamps = [s.timestamp for s in adv.ingested]
+    assert max(stamps) < T0 + 3600 and stamps == sorted(stamps)
+    assert len(adv.calls) >= 3 and max(adv.calls) < T0 + 3600
+    ok = adv.calls[:3]                          # then the fake skips (retried every sample)
+    assert [b - a for a, b in zip(ok, ok[1:])] == [cfg.calibration_interval_s] * 2
+
+
+class FakeMono:
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_first_block_after_a_restart_carries_advice_stale(cfg):
+    """Restored advice 3,990 s old: the very first block says advice_stale (exact words)."""
+    class Restoring(FakeAdvisor):
+        def restored(self):
+            return Advice(T0 + 60 - 3990, {"R_th_f": 3e-3, "p_m_sp_rec": 17.5})
+
+    async def go():
+        gw, plc = gateway(cfg, Restoring(calibrated=True))
+        await gw.startup()
+        await cycles(gw, 1)
+        await gw.shutdown()
+        return plc.writes[0]
+    w = run(go())
+    assert w[0:4] == [1, 0x0040, 26081, 2854]        # heartbeat, advice_stale, last_update
+    assert w[28:30] == [0, 3990]                      # advice_age_s
+    assert w[4:6] == [0x418C, 0x0000]                 # p_m_sp_rec 17.5 (float32 ABCD)
+
+
+def test_blocks_while_the_first_calibration_runs_say_calibration_failed(cfg):
+    """The advisor has saved its first fouling state but is still optimizing: the blocks of
+    those cycles used to carry status 0 with last_update 0 and NaN values."""
+    class Slow(FakeAdvisor):
+        def __init__(self):
+            super().__init__()
+            self.started, self.go = threading.Event(), threading.Event()
+
+        def advise(self, t_end):
+            self.calls.append(t_end)
+            self._calibrated = True            # state saved; the optimization still runs
+            self.started.set()
+            self.go.wait(5.0)
+            return Advice(t_end, {"R_th_f": 3e-3, "p_m_sp_rec": 17.5, "CF_dp_f": 1.1})
+
+    async def go():
+        adv = Slow()
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        for _ in range(50):
+            await cycles(gw, 1)
+            if adv.started.is_set():
+                break
+        n0 = len(plc.writes)
+        await cycles(gw, 3)
+        during = plc.writes[n0:]
+        adv.go.set()
+        await asyncio.wait_for(asyncio.shield(gw._calibration), 5.0)
+        await cycles(gw, 1)
+        after = plc.writes[-1]
+        await gw.shutdown()
+        return during, after
+    during, after = run(go())
+    assert len(during) == 3
+    for w in during:
+        assert w[1] == 0x0048                          # calibration_failed + advice_stale
+        assert w[2:4] == [0, 0] and w[12:14] == [0x7FC0, 0x0000]      # no time, R_th_f NaN
+    assert after[1] == 0x0000 and after[12:14] != [0x7FC0, 0x0000]
+
+
+def test_storage_fault_bit_with_the_advice_still_written(cfg):
+    class Storing(FakeAdvisor):
+        storage_fault = None
+
+    async def go():
+        adv = Storing(["ok"])
         gw, plc = gateway(cfg, adv)
         await gw.startup()
         await _advise_until(gw, plc, adv, 1)
-        plc.t -= 10 * 3600.0                 # PLC clock reset / a fresh simulator
-        await _advise_until(gw, plc, adv, 2)
+        await cycles(gw, 1)
+        adv.storage_fault = "database or disk is full (SQLITE_FULL)"
+        await cycles(gw, 1)
+        faulty = plc.writes[-1]
+        adv.storage_fault = None
+        await cycles(gw, 1)
         await gw.shutdown()
-        return adv.calls
-    calls = run(go())
-    assert calls[1] < calls[0]
+        return faulty, plc.writes[-1]
+    faulty, fine = run(go())
+    assert faulty[1] == 0x0100 and fine[1] == 0x0000
+    assert faulty[4:6] == fine[4:6] == [0x418C, 0x0000]      # p_m_sp_rec 17.5 in both
+
+
+def test_a_stuck_sensor_is_flagged_flatline_and_sets_sensor_fault(cfg):
+    """T_source_out frozen at one value while the plant runs: after its flatline_s (default 1800
+    s of sample clock = 30 reads here) it is bad ('flatline') and sensor_fault is set; it clears
+    when the value moves. While the plant is off a flat value is no fault."""
+    stuck = {"T_source_out": TagValue("T_source_out", 18.0)}
+
+    async def go():
+        adv = FakeAdvisor()
+        gw, plc = gateway(cfg, adv)
+        await gw.startup()
+        plc.override = {**stuck, "running": TagValue("running", 0.0)}
+        await cycles(gw, 40)                                  # off: flat is normal
+        off = plc.writes[-1][1]
+        plc.override = dict(stuck)
+        await cycles(gw, 29)
+        not_yet = plc.writes[-1][1]
+        await cycles(gw, 3)
+        flat = plc.writes[-1][1]
+        n = len(adv.ingested)
+        await cycles(gw, 3)
+        flagged = adv.ingested[n:]
+        plc.override = {}
+        await cycles(gw, 3)
+        await gw.shutdown()
+        return off, not_yet, flat, flagged, plc.writes[-1][1]
+    off, not_yet, flat, flagged, moving = run(go())
+    assert off == 0x004A                           # heat_pump_off + calibration_failed + stale
+    assert not_yet == 0x0048
+    assert flat == 0x0448                          # + sensor_fault
+    assert flagged and all(s.bad.get("T_source_out") == "flatline"
+                           and math.isnan(s.values["T_source_out"]) for s in flagged)
+    assert all(math.isfinite(s.values["T_source_in"]) for s in flagged)
+    assert moving == 0x0048
+
+
+def test_a_required_tag_bad_longer_than_its_max_age_sets_sensor_fault(cfg):
+    fast = replace(cfg, tags=tuple(replace(t, max_age_s=0.05) for t in cfg.tags))
+
+    async def go():
+        gw, plc = gateway(fast)
+        await gw.startup()
+        plc.override = {"T_e": TagValue("T_e", None, "nan")}
+        await cycles(gw, 1)
+        first = plc.writes[-1][1]
+        await asyncio.sleep(0.1)
+        await cycles(gw, 1)
+        await gw.shutdown()
+        return first, plc.writes[-1][1]
+    first, later = run(go())
+    assert first == 0x0048                  # bad, but not yet for its max age
+    assert later == 0x0449                  # data_stale + sensor_fault (+ no advice yet)
 
 
 def test_a_skipped_calibration_waits_for_the_next_sample(cfg):
@@ -536,3 +752,102 @@ def test_a_refused_block_write_is_logged_once_and_counted(cfg, caplog):
     gw = run(go())
     assert gw.snapshot.writes_failed == 3 and gw.snapshot.writes_ok == 0
     assert caplog.text.count("refuses the advisory block") == 1
+
+
+def test_unwritable_state_and_full_history_keep_the_advice_and_recover(plant_minutes, tmp_path,
+                                                                       monkeypatch):
+    """Issue 9 item 8: a read-only state directory (mkstemp fails with EROFS, injected: this
+    runs as root, where chmod does not stop writes) and a full history (SQLITE_FULL from a capped
+    database) used to make the calibration fail or discard its advice. Now the advice comes back
+    whole, storage_fault says why, and both recover by themselves with the next sample."""
+    import errno
+
+    from edge import statefiles
+
+    adv, store = advisor_for(tmp_path)
+    try:
+        adv.ingest(plant_minutes[:-1])
+        t_end = plant_minutes[-2].timestamp + 60
+
+        def read_only(*a, **kw):
+            raise OSError(errno.EROFS, "Read-only file system")
+        monkeypatch.setattr(statefiles.tempfile, "mkstemp", read_only)
+        store.add_advice(0, {"message": "x" * 4000})   # fills the advice table's first page
+        pages = store.db.execute("PRAGMA page_count").fetchone()[0]
+        store.db.execute(f"PRAGMA max_page_count={pages}")   # no page more: a full disk
+        a = adv.advise(t_end)
+        assert a.ok, a.message
+        assert set(a.values) == ADVICE_FIELDS and all(math.isfinite(v) for v in a.values.values())
+        assert store.fault == "database or disk is full (SQLITE_FULL)"
+        assert adv.storage_fault == store.fault
+        assert not (tmp_path / "state" / "fouling_calibration.json").exists()
+        store.db.execute("PRAGMA max_page_count=1000000")
+        store._retry_at = -math.inf                   # the back-off would wait 1 s
+        assert store.flush() == 1 and store.fault is None
+        assert adv.storage_fault.startswith("cannot write state file ")
+        assert adv.storage_fault.endswith("fouling_calibration.json: [Errno 30] Read-only file "
+                                          "system")
+        monkeypatch.undo()                            # the directory is writable again
+        adv.ingest(plant_minutes[-1:])
+        assert adv.storage_fault is None
+        assert store.latest_advice(ok_only=True)["ts"] == int(t_end)
+        assert store.count("advice") == 2 and store.count() == len(plant_minutes)
+        saved = json.loads((tmp_path / "state" / "fouling_calibration.json").read_text())
+        assert saved["params"]["R_th_f_K_per_kW"] == pytest.approx(a.values["R_th_f"])
+    finally:
+        store.close()
+
+
+def test_a_locked_history_does_not_stop_the_gateway(tmp_path, monkeypatch):
+    """Issue 9 item 7: the history locked by another process at start: no '.corrupt-*' file, the
+    gateway runs and writes its block with storage_fault; when the lock goes, the waiting samples
+    are written and the bit clears."""
+    import sqlite3
+
+    from edge import store as store_mod
+    from edge.service import GatewayService
+
+    monkeypatch.setattr(store_mod, "OPEN_WAIT_S", 0.2)
+    monkeypatch.setattr(store_mod, "BUSY_TIMEOUT_S", 0.02)
+    monkeypatch.setattr(store_mod, "RETRY_MIN_S", 0.0)
+    full = load_config(ROOT / "config" / "gateway.yaml")
+    c = replace(full, state_dir=tmp_path / "state", history_db=tmp_path / "h.sqlite",
+                scan_interval_s=0.02)
+    with store_mod.HistoryStore(c.history_db, 1.0) as s:
+        s.add_samples([{"ts": 0, "usable": 0}])
+    other = sqlite3.connect(c.history_db, isolation_level=None)
+    other.execute("PRAGMA locking_mode=EXCLUSIVE")
+    other.execute("BEGIN EXCLUSIVE")
+    other.execute("CREATE TABLE lock_holder (x)")
+    locked = True
+
+    async def go():
+        nonlocal locked
+        svc = GatewayService(c, time_source="plc", install_signals=False, plc=FakePlc(c))
+        gw, plc = svc.gateway, svc.gateway.plc
+        try:
+            await gw.startup()
+            await cycles(gw, 4)
+            during = list(plc.writes[-1])
+            other.execute("ROLLBACK")
+            other.close()
+            locked = False
+            await cycles(gw, 2)
+            await gw.shutdown()
+        finally:
+            svc.store.close()
+        return during, plc.writes[-1], gw.snapshot
+    try:
+        during, after, snap = run(go())
+    finally:
+        if locked:
+            other.close()
+    assert during[1] == 0x0148           # storage_fault + calibration_failed + advice_stale
+    assert after[1] == 0x0048
+    assert list(tmp_path.glob("*.corrupt-*")) == []
+    db = sqlite3.connect(c.history_db)
+    try:
+        n = db.execute("SELECT COUNT(*) FROM samples WHERE ts > 0").fetchone()[0]
+    finally:
+        db.close()
+    assert n == snap.samples >= 4        # every sample of the locked time reached the disk

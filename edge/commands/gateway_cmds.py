@@ -19,8 +19,22 @@ STATUS_BIT_NOTES = {   # what edge/loop.py does, word for word (the HMI map is g
     "model_infeasible": "the last set-point optimization found no feasible point in the window",
     "comm_fault": "the last poll got no usable answer, or one failed since the previous successful "
                   "advisory write (the first block after an outage carries it)",
-    "advice_stale": "values are from an earlier calibration: the last attempt failed, or they are "
-                    "older than 1.5 calibration intervals (see advice_age_s)",
+    "advice_stale": "values are not a current advice: the last attempt failed, there are none "
+                    "(NaN), they are older than 1.5 calibration intervals (see advice_age_s), or "
+                    "their age is unknown (advice_age_s = 4294967295: no sample clock yet, or "
+                    "the advice is from a later time than the sample clock shows)",
+    # issue 9 (runtime): storage, clock and sensor faults
+    "storage_fault": "the history or the state directory is not writable (locked by another "
+                     "process, disk full, read-only): the advice is still computed and written, "
+                     "rows wait in memory, and the bit clears by itself once a write succeeds",
+    "clock_fault": "the sample clock of the last scan was rejected as implausible (ahead of the "
+                   "host clock by more than a day, back by more than 10 s, or a jump the elapsed "
+                   "time cannot explain), or one was since the previous successful advisory "
+                   "write; the scan is not aggregated. A jump that persists 5 min is accepted as "
+                   "a clock correction",
+    "sensor_fault": "while the heat pump runs and the PLC answers, a required tag has flat-lined "
+                    "(no change beyond its resolution for its flatline_s; reason 'flatline') or "
+                    "has not been read good for its max_age_s",
 }
 
 

@@ -88,6 +88,7 @@ class ReducedPlant:
     R: float = field(init=False)
     cost_eur: float = field(init=False, default=0.0)
     cips: list = field(init=False, default_factory=list)
+    truth: list = field(init=False, default_factory=list)    # (t_days, true R) at each window end
     _cip_end: float = field(init=False, default=math.inf)
     _cip_start: float = field(init=False, default=math.nan)
     _win_start: float = field(init=False, default=0.0)
@@ -136,6 +137,7 @@ class ReducedPlant:
                 self._win_acc = 0.0
                 est = true_mean + self._rng.normal(0.0, self.noise_K_per_kW)
                 events.append(WindowEstimate(self._win_start, nxt, est, self.noise_K_per_kW))
+                self.truth.append((nxt, self.R))
                 self._win_start = nxt
         return events
 
@@ -194,7 +196,9 @@ class ForecastAdvisor:
     _resets: list = field(default_factory=list)
     _cycle_fits: list = field(default_factory=list)  # prior-free fit of each completed cycle
     _cip_starts: list = field(default_factory=list)
+    forecast_days: float = 2.0            # horizon of the logged forecasts (accuracy figures)
     trail: list = field(default_factory=list)        # (t, T_opt, law, share) per refit
+    forecasts: list = field(default_factory=list)    # (t made, t target, days since reset, value, lo, hi)
     fit_seconds: list = field(default_factory=list)
 
     def observe(self, event) -> None:
@@ -230,6 +234,9 @@ class ForecastAdvisor:
         except ForecastError:
             return
         self._fit = fit
+        now = t_days - self.reset_days
+        p = fit.at_horizon(self.forecast_days, now)
+        self.forecasts.append((t_days, t_days + self.forecast_days, now, p.value, p.lo, p.hi))
         if self._pairs and not math.isfinite(self._pairs[-1][1]):
             self._pairs[-1][1] = fit.y0
         share = self.share()
@@ -311,3 +318,102 @@ def compare_policies(make_plant: Callable[[], object], make_advisor: Callable[[]
     return {"fixed": fixed, "advised": advised, "best_fixed_eur": best, "median_fixed_eur": median,
             "advised_vs_best": advised.cycle_total_eur / best - 1.0,
             "advised_below_median": advised.cycle_total_eur < median}
+
+
+# ---- the simulator-free benchmark -------------------------------------------------------------------------
+# Scenarios of the reduced plant: the simulator's fouling law (config/simulator.yaml: R 2.5e-3 K/kW at
+# the start, R_inf 6e-3 K/kW, tau 15 d, 2.5 d CIPs removing 15 %) and the same with CIPs removing 30 %
+# (the upper end of what plants report). Cost rate 40 EUR/day per 1e-3 K/kW (about 17 kW of extra
+# compressor power per 1e-3 K/kW at 100 EUR/MWh, the model's figure at the nominal point); a CIP costs
+# 1000 EUR net (at 2000 EUR direct cost plus replacement heat a 15 % CIP never pays for itself: the
+# optimum would be "never clean", and every fixed interval would be a loss, which tests nothing).
+COST_PER_K_PER_KW_EUR_PER_DAY = 40.0e3
+BENCH_CIP_COST_EUR = 1000.0
+SCENARIOS = {"simulator_law_15pct": {"removal_share": 0.15}, "strong_cip_30pct": {"removal_share": 0.30}}
+
+
+def bench_curve() -> CostCurve:
+    return CostCurve([0.0, 1e-3], [0.0, COST_PER_K_PER_KW_EUR_PER_DAY * 1e-3])
+
+
+def forecast_accuracy(plant: ReducedPlant, advisor: ForecastAdvisor, min_days_after_reset: float = 2.0,
+                      tol_K_per_kW: float = 0.3e-3) -> dict:
+    """The logged forecasts (``advisor.forecast_days`` ahead) made >= min_days_after_reset after a reset
+    whose target lies before the next CIP: share within +-tol of the truth, share with the truth
+    inside the band."""
+    tr = np.array(plant.truth)
+    cip_starts = np.array([c[0] for c in plant.cips] + [math.inf])
+    n = ok = inband = 0
+    for t_made, t_target, since, v, lo, hi in advisor.forecasts:
+        if since < min_days_after_reset:
+            continue
+        nxt = cip_starts[np.searchsorted(cip_starts, t_made, side="right")]
+        if t_target > nxt or t_target > tr[-1, 0]:
+            continue
+        j = int(np.searchsorted(tr[:, 0], t_target))
+        t0, R0_, t1, R1_ = tr[j - 1, 0], tr[j - 1, 1], tr[j, 0], tr[j, 1]
+        truth = R0_ + (R1_ - R0_) * (t_target - t0) / (t1 - t0) if t1 > t0 else R1_
+        n += 1
+        ok += abs(v - truth) <= tol_K_per_kW
+        inband += lo <= truth <= hi
+    return {"n_forecasts": n, "within_tol_share": ok / n if n else math.nan,
+            "truth_in_band_share": inband / n if n else math.nan, "tol_K_per_kW": tol_K_per_kW,
+            "horizon_days": advisor.forecast_days}
+
+
+def bench_cip(seeds: Sequence[int] = (0, 1, 2), horizon_days: float = 120.0) -> dict:
+    """The simulator-free part of ``hp-edge bench --only cip``: the policy comparison on the reduced
+    plant per scenario and seed, the forecast accuracy there, and the time of one window's advice
+    (forecast of R_th,f and CF_dp,f + cost + CIP plan). JSON-able."""
+    from .cip import CipSettings, advise_cip
+
+    out: dict = {"targets": {"advised_vs_best_max": 0.02, "advised_below_median": True,
+                             "forecast_within_0.3e-3_share_min": 0.80, "truth_in_band_share_min": 0.80,
+                             "advice_one_window_ms_max": 50.0},
+                 "cost_per_K_per_kW_eur_per_day": COST_PER_K_PER_KW_EUR_PER_DAY,
+                 "cip_cost_eur": BENCH_CIP_COST_EUR, "scenarios": {}}
+    curve = bench_curve()
+    for name, kw in SCENARIOS.items():
+        rows = []
+        for seed in seeds:
+            plants: list = []
+            advisors: list = []
+
+            def make_plant(seed=seed):
+                plants.append(ReducedPlant(curve, BENCH_CIP_COST_EUR, seed=seed, **kw))
+                return plants[-1]
+
+            def make_advisor():
+                advisors.append(ForecastAdvisor(curve, BENCH_CIP_COST_EUR, 2.5))
+                return advisors[-1]
+            res = compare_policies(make_plant, make_advisor, horizon_days=horizon_days)
+            adv = advisors[-1]
+            acc = forecast_accuracy(plants[-1], adv)      # the advised run's plant (made last)
+            rows.append({"seed": seed,
+                         "fixed_cycle_total_eur": {f"{T:g}": r.cycle_total_eur for T, r in res["fixed"].items()},
+                         "fixed_raw_total_eur": {f"{T:g}": r.total_cost_eur for T, r in res["fixed"].items()},
+                         "advised_cycle_total_eur": res["advised"].cycle_total_eur,
+                         "advised_raw_total_eur": res["advised"].total_cost_eur,
+                         "advised_cips": res["advised"].n_cips,
+                         "advised_vs_best": res["advised_vs_best"],
+                         "advised_below_median": bool(res["advised_below_median"]),
+                         "refit_ms_median": 1e3 * float(np.median(adv.fit_seconds)), **acc})
+        out["scenarios"][name] = rows
+
+    # one window's advice on a 10-day cycle of 2-h windows (R_th,f and CF_dp,f), best and median of 20
+    rng = np.random.default_rng(0)
+    t = np.arange(1 / 24, 10.0, 2 / 24)
+    R = 4.4e-3 + 1.6e-3 * (1 - np.exp(-t / 15.0)) + rng.normal(0, 0.05e-3, len(t))
+    CF = 1.2 + 0.2 * (1 - np.exp(-t / 20.0)) + rng.normal(0, 0.005, len(t))
+    settings = CipSettings()
+    times = []
+    for _ in range(20):
+        t0 = time.perf_counter()
+        advice = advise_cip(t_days=t, R_K_per_kW=R, R_se_K_per_kW=np.full(len(t), 0.05e-3),
+                            t_now_days=float(t[-1]), cop_levels=((0.0, 3e-3, 6e-3), (4.9, 4.62, 4.37)),
+                            Q_sink_kW=2000.0, settings=settings, start_s=0.0, end_s=7200.0, CF_dp_f=CF,
+                            CF_dp_f_se=np.full(len(t), 0.005), V_source_m3_per_h=192.0, dp_clean_bar=0.25)
+        times.append(time.perf_counter() - t0)
+    out["advice_one_window_ms"] = {"median": 1e3 * float(np.median(times)), "max": 1e3 * float(np.max(times)),
+                                   "windows": int(len(t)), "plan": advice.plan is not None}
+    return out

@@ -358,6 +358,24 @@ class FoulingComponent:
         y_post = self.start_level(T_days)
         return self.fit.growth(np.asarray(y_post)[..., None], tau_days)
 
+    def crossing_times(self, T_days, x):
+        """Times [day] at which the cycle of length T (shape (m,)) reaches the levels x (shape (b,)),
+        clipped to [0, T]: shape (m, b). The path is non-decreasing, so the times are sorted."""
+        fit = self.fit
+        T = np.asarray(T_days, dtype=float)[:, None]
+        y_post = np.asarray(self.start_level(T_days), dtype=float)[:, None]
+        x = np.asarray(x, dtype=float)[None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if fit.law == "kern_seaton":
+                tau = np.log((fit.y_inf - y_post) / (fit.y_inf - x)) / fit.k
+                tau = np.where(x >= fit.y_inf, np.inf, tau)
+            elif fit.r0 > 0:
+                tau = (x - y_post) / fit.r0
+            else:
+                tau = np.full(np.broadcast_shapes(x.shape, y_post.shape), np.inf)
+        tau = np.where((x <= y_post) | np.isnan(tau), 0.0, tau)
+        return np.minimum(np.maximum(tau, 0.0), T)
+
     def variants(self) -> list:
         """[(weight, component)]: itself, or its sigma points when ``uncertain``."""
         if not self.uncertain:
@@ -390,11 +408,26 @@ def _expand(components) -> list:
     return [vc for comp in components for vc in comp.variants()]
 
 
+_GL16_X, _GL16_W = np.polynomial.legendre.leggauss(16)
+_GL16_X, _GL16_W = 0.5 * (_GL16_X + 1.0), 0.5 * _GL16_W
+
+
 def _cycle_cost(expanded, T) -> np.ndarray:
-    tau = T[:, None] * _GL_X[None, :]
+    """Sum of w * integral_0^T f(level) dt. A CostCurve is piecewise linear: the integral is split
+    where the path crosses its breakpoints, and each smooth piece gets 16 Gauss–Legendre nodes
+    (exact to rounding for these laws); any other cost callable gets 48 nodes over [0, T]."""
     total = np.zeros(T.shape)
     for wv, c in expanded:
-        total += wv * (np.asarray(c.cost_eur_per_day(c.levels(T, tau))) * _GL_W[None, :]).sum(axis=1) * T
+        f = c.cost_eur_per_day
+        if isinstance(f, CostCurve):
+            edges = np.concatenate([np.zeros((len(T), 1)), c.crossing_times(T, f.levels), T[:, None]], axis=1)
+            a, h = edges[:, :-1, None], np.diff(edges, axis=1)[:, :, None]
+            tau = (a + h * _GL16_X[None, None, :]).reshape(len(T), -1)
+            wts = (h * _GL16_W[None, None, :]).reshape(len(T), -1)
+            total += wv * (np.asarray(f(c.levels(T, tau))) * wts).sum(axis=1)
+        else:
+            tau = T[:, None] * _GL_X[None, :]
+            total += wv * (np.asarray(f(c.levels(T, tau))) * _GL_W[None, :]).sum(axis=1) * T
     return total
 
 
@@ -406,8 +439,8 @@ def _end_rate(expanded, T) -> np.ndarray:
 
 
 def cycle_cost_eur(components: Sequence[FoulingComponent], T_days) -> np.ndarray:
-    """Fouling cost over the cycle's operation, integral_0^T f dt [EUR], for each T
-    (Gauss–Legendre, 48 nodes; the sigma-point mean for ``uncertain`` components)."""
+    """Fouling cost over the cycle's operation, integral_0^T f dt [EUR], for each T (Gauss–Legendre,
+    split at a CostCurve's breakpoints; the sigma-point mean for ``uncertain`` components)."""
     return _cycle_cost(_expand(components), np.atleast_1d(np.asarray(T_days, dtype=float)))
 
 
@@ -459,7 +492,7 @@ def current_cost_rate_eur_per_day(components: Sequence[FoulingComponent], t_days
 
 def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, downtime_days: float,
              t_now_days: float, T_current_days: float | None = None, trigger: str = "level",
-             T_min_days: float = 0.25, T_max_days: float = 365.0, n_grid: int = 160) -> CipPlan:
+             T_min_days: float = 0.25, T_max_days: float = 365.0, n_grid: int = 100) -> CipPlan:
     """The cost-optimal cycle (T*, J(T*)), when to clean in the current cycle, and the saving.
 
     T* minimises J(T) on the steady cycle (module docstring): a geometric grid of ``n_grid`` values
@@ -494,7 +527,7 @@ def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, dow
     i = int(np.argmin(Jg))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
     res = optimize.minimize_scalar(lambda T: float(J(T)[0]), bounds=(a, b), method="bounded",
-                                   options={"xatol": 1e-7 * b})
+                                   options={"xatol": 1e-6 * b})
     T_opt = float(res.x) if res.fun <= Jg[i] else float(grid[i])
     J_opt = float(J(T_opt)[0])
     f_end = float(_end_rate(expanded, np.array([T_opt]))[0])

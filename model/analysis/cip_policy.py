@@ -323,10 +323,11 @@ def compare_policies(make_plant: Callable[[], object], make_advisor: Callable[[]
 # ---- the simulator-free benchmark -------------------------------------------------------------------------
 # Scenarios of the reduced plant: the simulator's fouling law (config/simulator.yaml: R 2.5e-3 K/kW at
 # the start, R_inf 6e-3 K/kW, tau 15 d, 2.5 d CIPs removing 15 %) and the same with CIPs removing 30 %
-# (the upper end of what plants report). Cost rate 40 EUR/day per 1e-3 K/kW (about 17 kW of extra
-# compressor power per 1e-3 K/kW at 100 EUR/MWh, the model's figure at the nominal point); a CIP costs
-# 1000 EUR net (at 2000 EUR direct cost plus replacement heat a 15 % CIP never pays for itself: the
-# optimum would be "never clean", and every fixed interval would be a loss, which tests nothing).
+# (the upper end of what plants report). Cost rate 40 EUR/day per 1e-3 K/kW: 16.7 kW of extra
+# compressor power at 100 EUR/MWh (the model at the nominal point gives 13-18 kW per 1e-3 K/kW over
+# R_th,f 1-6e-3 K/kW). A CIP costs 1000 EUR net: with this cost rate a CIP that removes 15 % pays for
+# itself only below about 1100 EUR (30 %: 1600 EUR); above that the optimum is "never clean" and
+# every fixed interval is a loss, which would test nothing.
 COST_PER_K_PER_KW_EUR_PER_DAY = 40.0e3
 BENCH_CIP_COST_EUR = 1000.0
 SCENARIOS = {"simulator_law_15pct": {"removal_share": 0.15}, "strong_cip_30pct": {"removal_share": 0.30}}

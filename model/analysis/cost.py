@@ -48,7 +48,6 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy import optimize
 
 from .forecast import FoulingFit, ForecastError
 
@@ -496,7 +495,8 @@ def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, dow
     """The cost-optimal cycle (T*, J(T*)), when to clean in the current cycle, and the saving.
 
     T* minimises J(T) on the steady cycle (module docstring): a geometric grid of ``n_grid`` values
-    of T in [T_min_days, T_max_days], then bounded Brent between the best point's neighbours.
+    of T in [T_min_days, T_max_days], three nested linear grids between the best point's neighbours,
+    and a parabola through the last three (T* to ~1e-6 of its value).
     trigger : "level" (default) — clean when the current cycle's forecast cost rate reaches f(T*),
         the rate at which the optimal steady cycle ends; on the steady cycle this is T* itself, and a
         cycle that started cleaner (commissioning, a good CIP) or dirtier runs longer or shorter
@@ -525,11 +525,23 @@ def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, dow
     if not np.all(np.isfinite(Jg)):
         raise CostError("the cycle cost is not finite on the search range (check the cost curves)")
     i = int(np.argmin(Jg))
+    T_opt, J_opt = float(grid[i]), float(Jg[i])
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
-    res = optimize.minimize_scalar(lambda T: float(J(T)[0]), bounds=(a, b), method="bounded",
-                                   options={"xatol": 1e-6 * b})
-    T_opt = float(res.x) if res.fun <= Jg[i] else float(grid[i])
-    J_opt = float(J(T_opt)[0])
+    for n_fine in (41, 21, 21):                  # nested vectorised grids, then a parabola
+        g = np.linspace(a, b, n_fine)
+        Jf = J(g)
+        j = int(np.argmin(Jf))
+        if Jf[j] <= J_opt:
+            T_opt, J_opt = float(g[j]), float(Jf[j])
+        a, b = g[max(j - 1, 0)], g[min(j + 1, n_fine - 1)]
+    if 0 < j < n_fine - 1:
+        y0_, y1_, y2_ = Jf[j - 1], Jf[j], Jf[j + 1]
+        den = y0_ - 2 * y1_ + y2_
+        if den > 0:
+            T_par = float(g[j] + 0.5 * (g[1] - g[0]) * (y0_ - y2_) / den)
+            J_par = float(J(T_par)[0])
+            if J_par <= J_opt:
+                T_opt, J_opt = T_par, J_par
     f_end = float(_end_rate(expanded, np.array([T_opt]))[0])
     interior = 0 < i < n_grid - 1
     notes = []
@@ -553,12 +565,10 @@ def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, dow
             t_cip = 0.0
         else:
             lo, hi = tt[hit[0] - 1], tt[hit[0]]
-            for _ in range(60):
-                m = 0.5 * (lo + hi)
-                if current_cost_rate_eur_per_day(components, m) >= f_end:
-                    hi = m
-                else:
-                    lo = m
+            for _ in range(3):                        # nested grids: the bracket shrinks 1/200 each
+                g = np.linspace(lo, hi, 201)
+                k_ = int(np.flatnonzero(current_cost_rate_eur_per_day(components, g) >= f_end)[0])
+                lo, hi = g[max(k_ - 1, 0)], g[k_]
             t_cip = float(hi)
     Tc = Jc = saving = None
     if T_current_days is not None:

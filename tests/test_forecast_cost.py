@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from model.analysis.cost import (CostCurve, CostError, CostTally, FoulingComponent, PriceSeries,
                                  average_cost_eur_per_day, cleaning_cost_eur, compressor_cost_curve,
@@ -298,3 +299,31 @@ def test_plan_inputs_are_checked_and_the_date_is_reset_plus_t_cip():
     cheap = FoulingComponent(law("linear", 0.0, 1e-9), 0.2, CostCurve([0.0, 1e-3], [0.0, 40.0]))
     never = plan_cip([cheap], cip_cost_eur=1e6, downtime_days=2.0, t_now_days=0.0)
     assert not never.interior and "cleaning does not pay" in never.notes[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(cuts=st.lists(st.floats(0.01, 0.99), min_size=1, max_size=5, unique=True),
+       rate=st.floats(0.0, 500.0), hours=st.floats(0.5, 48.0))
+def test_splitting_a_window_does_not_change_the_cumulated_cost(cuts, rate, hours):
+    """Contiguous windows at one rate cost rate * duration however the time is cut into windows."""
+    end = hours * 3600.0
+    edges = [0.0] + sorted(c * end for c in cuts) + [end]
+    tally = CostTally()
+    for a, b in zip(edges[:-1], edges[1:]):
+        tally = tally.add(a, b, rate)
+    assert tally.total_eur == pytest.approx(rate * hours / 24.0, rel=1e-12, abs=1e-12)
+    assert tally.covered_s == pytest.approx(end) and tally.bridged_s == 0.0 and tally.uncovered_s == 0.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(R_start=st.floats(0.0, 5e-3), dR=st.floats(1e-5, 5e-3), tau=st.floats(2.0, 60.0),
+       s=st.floats(0.05, 1.0), T=st.floats(0.5, 60.0))
+def test_steady_start_is_the_fixed_point_of_cleaning_and_growth(R_start, dR, tau, s, T):
+    fit = law("kern_seaton", R_start, dR / tau, tau)
+    comp = FoulingComponent(fit, s, CostCurve([0.0, 1e-3], [0.0, 40.0]))
+    y_post = float(comp.start_level(T))
+    assert 0.0 <= y_post <= fit.y_inf
+    assert y_post == pytest.approx((1 - s) * float(fit.growth(y_post, T)), rel=1e-9, abs=1e-15)
+    tc = comp.crossing_times(np.array([T]), np.array([y_post + 0.5 * (fit.y_inf - y_post)]))[0, 0]
+    if tc < T:                                    # the path reaches the midway level at tc
+        assert float(fit.growth(y_post, tc)) == pytest.approx(y_post + 0.5 * (fit.y_inf - y_post), rel=1e-9)

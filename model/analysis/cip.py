@@ -69,6 +69,7 @@ def window_cost(*, Q_sink_kW: float, COP_adaptive: float, COP_clean: float, V_so
     COP_adaptive, COP_clean, COP_post : period COPs of the model at the window's R_th,f, at R_th,f = 0
         (the fixed model) and at the level right after the last CIP [-]
     V_source_m3_per_h, dp_fouling_bar : mean source flow [m3/h] and fouling pressure drop [bar]
+        (a negative dp_fouling_bar, CF_dp,f below 1 within its noise, prices no pump saving: 0)
     price : constant [EUR/MWh] or PriceSeries; start_s, end_s : the window [epoch s]
     """
     p = mean_price(price, start_s, end_s)

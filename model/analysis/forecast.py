@@ -32,6 +32,10 @@ Law choice (stated rule). Kern–Seaton is used only when all of these hold, els
   4. tau is not far beyond the data: tau <= max_tau_span_ratio (10) * span;
   5. k is inside its search range (0, 50/span) — at the upper end the law is a step, not a trend.
 
+Prior from earlier cycles (optional, ``law_prior``): the plant's 1/tau and y_inf from the completed
+cycles' own (prior-free) fits enter as Gaussian pseudo-observations, weighted with the data's
+residual scale; the law is then Kern–Seaton from the first day after a CIP.
+
 Not enough data (``NotEnoughData``, never a number): fewer than ``min_windows`` (6) finite
 estimates, or a span (last t - first t) shorter than ``min_span_days`` (1 day: shorter spans see
 the daily cycle of the operation, not the fouling trend).

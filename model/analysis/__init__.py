@@ -1,2 +1,2 @@
 """The DataFrame layer of the analysis: measured-side figures, learned compressors, calibration
-windows, optimization and forecasts in canonical columns (ARCHITECTURE.md)."""
+windows, optimization, fouling forecasts and CIP timing in canonical columns (ARCHITECTURE.md)."""

@@ -1,0 +1,291 @@
+"""Fouling forecast (issue 10): Kern–Seaton recovery, linear fallback, not-enough-data, bands, limits."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from model.analysis.forecast import (FitSettings, ForecastError, LawPrior, NotEnoughData, dphi_dk,
+                                     fit_fouling, law_prior, phi)
+
+R0, R_INF, TAU = 2.5e-3, 6.0e-3, 15.0        # the simulator's law (config/simulator.yaml), K/kW, days
+NOISE = 0.05e-3                              # per 2-h window estimate [K/kW]
+
+
+def ks(t, R0=R0, R_inf=R_INF, tau=TAU):
+    return R0 + (R_inf - R0) * (1 - np.exp(-np.asarray(t) / tau))
+
+
+def windows(days, hours=2.0):
+    """Mid-times of consecutive windows over ``days`` [day]."""
+    return np.arange(hours / 48.0, days, hours / 24.0)
+
+
+def test_phi_and_its_derivative_are_continuous_at_k_zero():
+    t = np.array([0.0, 0.5, 3.0, 12.0])
+    assert np.allclose(phi(t, 0.0), t)
+    assert np.allclose(phi(t, 1e-9), t, rtol=1e-8)
+    for k in (1e-7, 1e-4, 0.07, 2.0):
+        h = 1e-6 * max(k, 1e-6)
+        fd = (phi(t, k + h) - phi(t, k - h)) / (2 * h) if k > h else (phi(t, k + h) - phi(t, k)) / h
+        assert np.allclose(dphi_dk(t, k), fd, rtol=1e-4, atol=1e-9)
+    assert np.allclose(dphi_dk(t, 0.0), -t * t / 2)
+
+
+def test_kern_seaton_without_noise_is_recovered_exactly():
+    t = windows(12)
+    f = fit_fouling(t, ks(t), np.full(len(t), NOISE))
+    assert f.law == "kern_seaton"
+    assert f.y0 == pytest.approx(R0, rel=1e-6)
+    assert f.y_inf == pytest.approx(R_INF, rel=1e-6)
+    assert f.tau_days == pytest.approx(TAU, rel=1e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kern_seaton_with_noise_is_recovered_within_its_errors(seed):
+    rng = np.random.default_rng(seed)
+    t = windows(12)
+    R = ks(t) + rng.normal(0, NOISE, len(t))
+    f = fit_fouling(t, R, np.full(len(t), NOISE))
+    se = f.std_errors()
+    assert f.law == "kern_seaton", f.reason
+    # within 3 standard errors and within stated absolute tolerances
+    assert abs(f.y0 - R0) <= 3 * se["y0"] and abs(f.y0 - R0) <= 0.05e-3
+    assert abs(f.y_inf - R_INF) <= 3 * se["y_inf"] and abs(f.y_inf - R_INF) <= 0.6e-3
+    assert abs(f.tau_days - TAU) <= 3 * se["tau_days"] and abs(f.tau_days - TAU) <= 0.3 * TAU
+    assert f.s2 == pytest.approx(1.0, abs=0.35)        # se were right: chi2/dof near 1
+    assert f.rate(0.0) == pytest.approx((R_INF - R0) / TAU, rel=0.2)
+    assert f.rate(t[-1]) < f.rate(0.0)
+
+
+def test_linear_series_falls_back_to_the_linear_law():
+    rng = np.random.default_rng(3)
+    t = windows(6)
+    R = 1.0e-3 + 0.2e-3 * t + rng.normal(0, NOISE, len(t))
+    f = fit_fouling(t, R, np.full(len(t), NOISE))
+    assert f.law == "linear"
+    assert f.tau_days == math.inf and f.y_inf == math.inf
+    se = f.std_errors()
+    assert abs(f.r0 - 0.2e-3) <= 3 * se["r0"]
+    assert abs(f.y0 - 1.0e-3) <= 3 * se["y0"]
+    assert f.rate(3.0) == f.r0
+    assert "curvature" in f.reason
+
+
+def test_early_kern_seaton_data_fall_back_to_linear_with_the_reason():
+    """Four days of the simulator's law: the curvature is below the noise, tau >> span."""
+    rng = np.random.default_rng(0)
+    t = windows(4)
+    f = fit_fouling(t, ks(t) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE))
+    assert f.law == "linear"
+    assert "not significant" in f.reason or "infinite" in f.reason
+
+
+def test_too_few_windows_is_not_enough_data_not_a_number():
+    with pytest.raises(NotEnoughData) as exc:
+        fit_fouling([0.1, 0.5, 1.0, 1.5, 2.0], [1e-3] * 5, [1e-5] * 5)
+    assert str(exc.value) == ("not enough data: 5 window estimate(s) over 1.90 days since the last reset; "
+                              "a forecast needs >= 6 over >= 1 days")
+    assert exc.value.n == 5
+
+
+def test_too_short_a_span_is_not_enough_data():
+    t = np.linspace(0.0, 0.9, 11)
+    with pytest.raises(NotEnoughData, match=r"11 window estimate\(s\) over 0.90 days"):
+        fit_fouling(t, 1e-3 + 1e-4 * t, np.full(11, 1e-5))
+
+
+def test_non_finite_estimates_are_dropped_and_counted():
+    t = windows(3)
+    R = 1e-3 + 1e-4 * t
+    R[[2, 5]] = np.nan
+    f = fit_fouling(t, R, np.full(len(t), 1e-5))
+    assert f.n == len(t) - 2 and f.n_dropped == 2
+    t6 = np.array([0.0, 0.3, 0.6, 0.9, 1.2, 1.5])
+    R6 = np.array([1, 1, 1, np.nan, 1, 1.0]) * 1e-3
+    with pytest.raises(NotEnoughData, match=r"5 window estimate\(s\) over 1.50 days"):  # NaN does not count
+        fit_fouling(t6, R6, np.full(6, 1e-5))
+
+
+@pytest.mark.parametrize("args, message", [
+    (([0, 1, 2], [1, 2], None), "t_days, y and se differ in length: 3, 2, 3"),
+    (([-1.0, 0, 1, 2, 3, 4], [1] * 6, None), "t_days must be >= 0 (days since the last reset), got -1"),
+])
+def test_malformed_input_is_a_forecast_error(args, message):
+    with pytest.raises(ForecastError) as exc:
+        fit_fouling(*args)
+    assert str(exc.value) == message
+
+
+def test_settings_and_arguments_are_checked():
+    with pytest.raises(ForecastError, match="law must be"):
+        fit_fouling(windows(3), np.ones(36), law="exp")
+    with pytest.raises(ForecastError, match="overlap must be a number >= 1"):
+        fit_fouling(windows(3), np.ones(36), overlap=0.5)
+    with pytest.raises(ForecastError, match="forecast setting alpha"):
+        FitSettings(alpha=1.5)
+
+
+def test_physical_bounds_hold_for_falling_data():
+    """R falling with time (e.g. loose deposits washing off) cannot give R_inf < R0: the rate is 0."""
+    rng = np.random.default_rng(5)
+    t = windows(5)
+    f = fit_fouling(t, 3e-3 - 0.1e-3 * t + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE))
+    assert f.r0 == 0.0 and f.rate(1.0) == 0.0
+    assert f.y0 == pytest.approx(np.mean(3e-3 - 0.1e-3 * t), abs=0.05e-3)
+    g = fit_fouling(t, -1e-4 + 0 * t + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE))
+    assert g.y0 >= 0.0                                   # floor
+
+
+@settings(max_examples=40, deadline=None)
+@given(R0_=st.floats(0.0, 5e-3), dR=st.floats(0.0, 4e-3), tau=st.floats(1.0, 200.0),
+       span=st.floats(1.0, 20.0), noise=st.floats(1e-6, 2e-4), seed=st.integers(0, 2 ** 16))
+def test_fit_respects_the_bounds_and_the_band_brackets_the_curve(R0_, dR, tau, span, noise, seed):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, span, 30)
+    R = ks(t, R0_, R0_ + dR, tau) + rng.normal(0, noise, len(t))
+    f = fit_fouling(t, R, np.full(len(t), noise))
+    assert f.y0 >= 0.0 and f.r0 >= 0.0 and f.k >= 0.0 and f.tau_days > 0
+    assert f.y_inf >= f.y0
+    tt = np.linspace(0, span + 10, 25)
+    lo, hi = f.band(tt)
+    v = f.value(tt)
+    assert np.all(lo <= v + 1e-15) and np.all(v <= hi + 1e-15) and np.all(lo >= 0.0)
+    assert np.all(np.diff(v) >= -1e-15)                  # non-decreasing
+    mlo, mhi = f.band(tt, kind="mean")
+    assert np.all(mhi - mlo <= hi - lo + 1e-15)          # the mean band is inside the prediction band
+
+
+def test_prediction_band_covers_at_about_its_nominal_rate():
+    """200 seeded cases of the simulator's law with noise, 2 days ahead: the 90 % prediction band
+    covers a new window estimate in 80-98 % of them, the mean band covers the true curve in >= 80 %."""
+    rng = np.random.default_rng(2024)
+    hit_new = hit_true = 0
+    n_cases = 200
+    for _ in range(n_cases):
+        R0_ = rng.uniform(1e-3, 4.5e-3)
+        span = rng.uniform(6.0, 12.0)
+        t = windows(span)
+        f = fit_fouling(t, ks(t, R0_) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE))
+        t_f = t[-1] + 2.0
+        truth = float(ks(t_f, R0_))
+        lo, hi = f.band(t_f, 0.90)
+        hit_new += lo <= truth + rng.normal(0, NOISE) <= hi
+        mlo, mhi = f.band(t_f, 0.90, kind="mean")
+        hit_true += mlo <= truth <= mhi
+    assert 0.80 <= hit_new / n_cases <= 0.98
+    assert hit_true / n_cases >= 0.80
+
+
+def test_horizon_prediction_and_limit_crossing():
+    rng = np.random.default_rng(7)
+    t = windows(10)
+    f = fit_fouling(t, ks(t) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE))
+    p = f.at_horizon()                                   # default 7 days after the last estimate
+    assert p.t_days == pytest.approx(t[-1] + 7.0)
+    assert p.lo < p.value < p.hi and p.level == 0.90
+    assert abs(p.value - ks(p.t_days)) < 0.3e-3
+    limit = 5.5e-3
+    c = f.reach(limit)
+    assert c.mean_days is not None and c.mean_days > t[-1]
+    assert f.value(c.mean_days) == pytest.approx(limit, rel=1e-9)
+    assert c.upper_days is not None and c.upper_days <= c.mean_days
+    assert f.band(c.upper_days)[1] == pytest.approx(limit, rel=1e-6)
+    assert f.reach(f.y_inf + 1e-3).mean_days is None                 # above the asymptote: never
+    now_above = f.reach(1e-3)
+    assert now_above.mean_days == t[-1] and now_above.upper_days == t[-1]
+
+
+def test_linear_law_limit_crossing_is_closed_form():
+    t = windows(4)
+    f = fit_fouling(t, 1e-3 + 0.25e-3 * t, np.full(len(t), 1e-5))
+    assert f.law == "linear"
+    assert f.reach(3e-3).mean_days == pytest.approx(8.0, rel=1e-6)
+
+
+def test_cf_dp_f_is_fitted_with_its_own_floor():
+    rng = np.random.default_rng(11)
+    t = windows(12)
+    CF = 1.0 + ks(t, 0.08, 0.40, 20.0) + rng.normal(0, 0.005, len(t))
+    f = fit_fouling(t, CF, np.full(len(t), 0.005), floor=1.0)
+    assert f.floor == 1.0 and f.y0 >= 1.0
+    assert abs(f.value(14.0) - (1.0 + ks(14.0, 0.08, 0.40, 20.0))) < 0.02
+    g = fit_fouling(t, np.full(len(t), 0.98), np.full(len(t), 0.005), floor=1.0)
+    assert g.y0 == 1.0 and g.band(3.0)[0] >= 1.0
+
+
+def test_overlapping_windows_widen_the_covariance():
+    rng = np.random.default_rng(2)
+    t = windows(8)
+    R = ks(t) + rng.normal(0, NOISE, len(t))
+    a = fit_fouling(t, R, np.full(len(t), NOISE))
+    b = fit_fouling(t, R, np.full(len(t), NOISE), overlap=8.0)
+    assert b.law == a.law
+    assert np.allclose(b.cov, 8.0 * a.cov, rtol=1e-9)
+    assert b.dof == pytest.approx(a.dof / 8.0)
+
+
+def test_a_prior_from_earlier_cycles_gives_kern_seaton_on_a_short_cycle():
+    """Two days after a CIP the curvature is invisible; the plant's law from the previous cycle is not.
+    Over 40 seeded cycles, forecasting 7 days past the data: the prior halves the mean error and its
+    band covers the truth in >= 80 %."""
+    rng = np.random.default_rng(4)
+    t1 = windows(10)
+    first = fit_fouling(t1, ks(t1) + rng.normal(0, NOISE, len(t1)), np.full(len(t1), NOISE))
+    assert first.law == "kern_seaton"
+    prior = law_prior([first])
+    assert prior.n_cycles == 1
+    assert abs(1 / prior.k - TAU) < 0.3 * TAU and abs(prior.y_inf - R_INF) < 0.6e-3
+    R_post, t2, t_f = 4.4e-3, windows(2), 9.0
+    truth = ks(t_f, R_post)
+    err_free, err_prior, covered = [], [], 0
+    for _ in range(40):
+        R2 = ks(t2, R_post) + rng.normal(0, NOISE, len(t2))
+        free = fit_fouling(t2, R2, np.full(len(t2), NOISE))
+        with_prior = fit_fouling(t2, R2, np.full(len(t2), NOISE), prior=prior)
+        assert free.law == "linear" and with_prior.law == "kern_seaton"
+        assert "prior" in with_prior.reason
+        err_free.append(abs(free.value(t_f) - truth))
+        err_prior.append(abs(with_prior.value(t_f) - truth))
+        lo, hi = with_prior.band(t_f)
+        covered += lo <= truth <= hi
+    assert np.mean(err_prior) < 0.5 * np.mean(err_free)
+    assert covered / 40 >= 0.80
+
+
+def test_law_prior_skips_linear_fits_and_combines_cycles():
+    rng = np.random.default_rng(8)
+    fits = []
+    for R_start in (2.5e-3, 4.2e-3):
+        t = windows(11)
+        fits.append(fit_fouling(t, ks(t, R_start) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE)))
+    t = windows(3)
+    lin = fit_fouling(t, 1e-3 + 1e-4 * t, np.full(len(t), NOISE))
+    assert lin.law == "linear"
+    assert law_prior([lin, None]) is None
+    p = law_prior(fits + [lin])
+    assert p.n_cycles == 2
+    ks_k = [f.k for f in fits]
+    assert min(ks_k) <= p.k <= max(ks_k)
+    assert p.k_sd >= 0.1 * p.k and p.y_inf_sd >= 0.1 * p.y_inf
+    with pytest.raises(ForecastError, match="a law prior needs"):
+        LawPrior(-1.0, 0.1, 6e-3, 1e-3, 1)
+
+
+def test_forced_laws():
+    t = windows(6)
+    R = ks(t)
+    assert fit_fouling(t, R, law="linear").law == "linear"
+    f = fit_fouling(windows(3), ks(windows(3)), law="kern_seaton")
+    assert f.law == "kern_seaton" and f.reason == "law forced by the caller"
+    with pytest.raises(ForecastError, match="cannot be fitted"):
+        fit_fouling(t, 1e-3 + 1e-4 * t, law="kern_seaton")
+
+
+def test_to_dict_is_plain_numbers():
+    t = windows(4)
+    d = fit_fouling(t, 1e-3 + 1e-4 * t, np.full(len(t), 1e-5)).to_dict()
+    assert d["law"] == "linear" and d["y_inf"] is None and d["tau_days"] is None
+    assert all(isinstance(v, (int, float, str, dict, type(None))) for v in d.values())

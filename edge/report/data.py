@@ -160,7 +160,7 @@ def _normalise(df: pd.DataFrame, columns, aliases: dict, ambient_bar: float, wha
         elif c in ("advice_confident", "hs_saturated_opt", "usable"):
             out[c] = _bool(out[c])
         elif c in ("status", "detected_by", "calibration_warnings", "advice_note", "reason"):
-            out[c] = out[c].fillna("").astype(str)
+            out[c] = out[c].map(lambda v: "" if pd.isna(v) else str(v)).astype(str)
         else:
             out[c] = pd.to_numeric(out[c], errors="coerce")
     missing = [c for c in absent if c not in optional]
@@ -217,7 +217,7 @@ def samples_from_measured(frame: pd.DataFrame, ts: pd.DatetimeIndex | pd.Series)
         if c not in out.columns:
             out[c] = math.nan
     out["usable"] = _bool(out["usable"])
-    out["reason"] = out["reason"].fillna("").astype(str)
+    out["reason"] = out["reason"].map(lambda v: "" if pd.isna(v) else str(v)).astype(str)
     out["window_start"] = pd.NaT
     return out[list(SAMPLE_COLUMNS)]
 
@@ -356,8 +356,11 @@ def load_gateway(history_db: str | Path, state_dir: str | Path, params, plant: s
     except HistoryDbError as exc:
         raise ReportSourceError(str(exc)) from None
     sd = Path(state_dir)
-    if not sd.is_dir():
-        raise ReportSourceError(f"{sd}: no such state directory")
+    if sd.exists() and not sd.is_dir():
+        raise ReportSourceError(f"{sd}: not a directory (expected the gateway's state directory)")
+    if not sd.exists():
+        notes.append(f"no state directory {sd}: no calibration state (as a gateway that was never "
+                     "commissioned)")
     state = read_state_docs(sd)
     ts = utc_index(raw["ts"]) if len(raw) else pd.DatetimeIndex([], tz="UTC")
     samples = samples_from_measured(raw, ts)

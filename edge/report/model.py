@@ -83,7 +83,7 @@ class ModelValues:
     def caption(self) -> str:
         if self.n_simulated == 0:
             return ""
-        txt = (f"model values on every {self.step}th usable sample ({self.n_simulated} of "
+        txt = (f"model values on one usable sample in {self.step} ({self.n_simulated} of "
                f"{self.n_candidates}, to bound the report's run time)" if self.step > 1 else
                f"model values on all {self.n_simulated} usable samples")
         return txt

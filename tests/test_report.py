@@ -201,7 +201,7 @@ def test_replay_report_per_sample_series_are_the_measurement_and_the_models(
     assert 0.6 * len(hist) < usable.sum() < len(hist)
     # the adaptive value of a sample inside a window: the fixed model + that window's R_th,f, CF_dp,f
     w = data.windows[data.windows["status"] == "ok"].reset_index(drop=True)
-    fixed, _ = model_for_report(plant, data.state)
+    fixed = model_for_report(plant, data.state)
     t = data.samples["timestamp"]
     i = int(np.flatnonzero(usable & (t > w["window_start"][1]).to_numpy()
                            & (t < w["window_end"][1]).to_numpy())[5])
@@ -286,7 +286,7 @@ def test_report_from_gateway_history(gateway_report, gateway_db, work):
                                                      else math.inf)
     from model.batch import simulate_batch
     from edge.report.model import model_for_report, with_fouling
-    fixed, _ = model_for_report(data.params, data.state)
+    fixed = model_for_report(data.params, data.state)
     row = data.samples.iloc[[i]].rename(columns={"p_m_sp_barg": "p_m_sp"})
     by_hand = simulate_batch(row, with_fouling(fixed, adv["R_th_f"].iloc[latest],
                                                adv["CF_dp_f"].iloc[latest]), columns=("COP",))

@@ -58,20 +58,17 @@ def build_report(data: ReportData, out: str | os.PathLike,
         raise MatplotlibMissing("the report needs matplotlib: pip install 'hp-edge[report]'") from None
     from . import figures as F
     from .html import render
-    from .model import (add_eta_model, add_model_values, cop_curves, fouling_levels,
-                        representative_point, speeds_for_curves)
+    from .model import (ModelValues, add_eta_model, add_model_values, cop_curves, fouling_levels,
+                        model_notes, representative_point, speeds_for_curves)
 
     t0 = time.perf_counter()
     notes = list(data.notes)
-    fixed, model_notes = model_for_report(data.params, data.state)
-    notes += model_notes
-    mv = None
+    fixed = model_for_report(data.params, data.state)
+    notes += model_notes(data.state)
+    mv = ModelValues()                      # nothing simulated: the source carries the values
     if data.samples is not None and data.recomputed_samples:
         mv = add_model_values(data, fixed, max_model_samples)
         notes += mv.notes
-    if mv is None:
-        from .model import ModelValues
-        mv = ModelValues()
     add_eta_model(data, fixed)
     point = representative_point(data)
     curves, why = [], ""

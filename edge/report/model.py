@@ -20,13 +20,20 @@ SWEEP_STEP_BAR = 0.1               # set-point resolution of the COP curves [bar
 _SIM_COLUMNS = ("Q_sink_kW", "COP", "p_e_bar", "N_LS_rpm", "N_HS_rpm")
 
 
-def model_for_report(plant_params, state_docs: dict) -> tuple[object, list[str]]:
-    """(fixed model, notes): plant.yaml's parameters with the initial calibration and the clean
-    pressure-drop fit of ``state_docs`` (keys ``initial``, ``dp_clean``, ``compressors``; dicts as
-    stored by edge.statefiles, None when absent). Fouling is added per window by ``with_fouling``.
+def model_for_report(plant_params, state_docs: dict):
+    """The fixed model the report draws: plant.yaml's parameters (``plant_params``, a
+    PlantParams) with the initial calibration and the clean pressure-drop fit of ``state_docs``
+    (keys ``initial``, ``dp_clean``, ``compressors``: dicts as stored by edge.statefiles, None
+    when absent). Fouling is added per window by ``with_fouling``. Learned compressor curves
+    (``compressors``) are not applied yet: ``model_notes`` says so in the report.
     """
     from model.calibration import apply_state
 
+    return apply_state(plant_params, state_docs.get("initial"), state_docs.get("dp_clean"))
+
+
+def model_notes(state_docs: dict) -> list[str]:
+    """What the report's fixed model lacks, in words for the header."""
     notes = []
     if state_docs.get("initial") is None:
         notes.append("no initial calibration: the fixed model is the data sheet (plant.yaml)")
@@ -35,7 +42,7 @@ def model_for_report(plant_params, state_docs: dict) -> tuple[object, list[str]]
     if state_docs.get("compressors") is not None:
         notes.append("compressors.json (learned compressor curves) is present but not applied: "
                      "the report draws plant.yaml's curves")
-    return apply_state(plant_params, state_docs.get("initial"), state_docs.get("dp_clean")), notes
+    return notes
 
 
 def with_fouling(fixed, R_th_f_K_per_kW: float, CF_dp_f: float = 1.0):

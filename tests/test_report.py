@@ -328,6 +328,7 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, wor
     w["p_m_gm_barg"] = w.pop("p_m_gm_bar_a") - AMBIENT_BAR
     w["dCOP_opt_sd_pct"] = 0.4
     w["advice_confident"] = ["true", "false"] * (len(w) // 2) + ["true"] * (len(w) % 2)
+    w["advice_note"] = np.where(w["advice_confident"] == "false", "gain within its uncertainty", "")
     w.to_csv(new / "windows.csv", index=False)
     c = pd.read_csv(replay_dir / "cip.csv").rename(columns={"R_th_f_before": "R_th_f_before_K_per_kW",
                                                            "R_th_f_after": "R_th_f_after_K_per_kW"})
@@ -355,6 +356,7 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, wor
     assert pts["fouling"]["forecast"] == len(w) and pts["fouling"]["forecast_hi"] == len(w)
     assert pts["setpoint"]["dCOP_opt_sd_pct"] == len(w)
     assert f"not confident ({len(w) // 2} of {len(w)} windows" in html
+    assert f"Why: gain within its uncertainty ({len(w) // 2})." in html
     assert pts["timeseries"]["COP_adaptive"] == int(np.isfinite(data.samples["COP_adaptive"]).sum())
     assert "Dash-dot: the fouling forecast" in html
 

@@ -340,6 +340,10 @@ def fig_setpoint(data: ReportData) -> ReportFigure:
     if has_conf:
         cap += (f" Hollow markers: advice not confident ({int(unsure.sum())} of {len(w)} windows; "
                 "the block then recommends keeping the current set point).")
+        why = w.loc[unsure, "advice_note"].astype(str).str.strip()
+        why = why[why != ""].value_counts()
+        if len(why):
+            cap += " Why: " + "; ".join(f"{k} ({v})" for k, v in why.head(4).items()) + "."
     return ReportFigure(key, title, cap, _png(fig),
                         {"p_m_sp_actual_barg": (x, act), "p_m_sp_opt_barg": (x, rec),
                          "p_m_gm_barg": (x, gm), "dCOP_opt_pct": (x, dcop),

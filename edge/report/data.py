@@ -403,7 +403,10 @@ def _windows_from_advice(adv: pd.DataFrame, window_hours: float, ambient_bar: fl
         end = pd.Timestamp(float(rec["ts"]), unit="s", tz="UTC")
         row = {c: math.nan for c in WINDOW_COLUMNS}
         row["window_end"] = end
-        row["window_start"] = (utc(cal.get("window_start")) or end - pd.Timedelta(hours=window_hours))
+        start = utc(cal.get("window_start"))
+        if start is None or not end - pd.Timedelta(hours=2 * window_hours) <= start <= end:
+            start = end - pd.Timedelta(hours=window_hours)   # not recorded, or not this advice's
+        row["window_start"] = start
         for src, dst in ADVICE_TO_WINDOW.items():
             if src in rec and rec[src] is not None:
                 row[dst] = rec[src]

@@ -96,9 +96,14 @@ def _date_axis(ax) -> None:
 
 
 def _shade_cips(ax, data: ReportData, label: bool) -> None:
+    """Hatch each CIP, at least 1/250 of the period wide so a short one stays visible."""
+    p0, p1 = _naive([data.period[0]])[0], _naive([data.period[1]])[0]
+    least = (p1 - p0) / 250 if not (np.isnat(p0) or np.isnat(p1)) else np.timedelta64(0, "s")
     for i, (a, b) in enumerate(zip(_naive(data.cips["cip_start"]), _naive(data.cips["cip_end"]))):
         if np.isnat(a) or np.isnat(b):
             continue
+        if b - a < least:
+            a, b = a + (b - a) / 2 - least / 2, a + (b - a) / 2 + least / 2
         ax.axvspan(a, b, label="CIP" if (label and i == 0) else None, **CIP_SPAN)
 
 
@@ -237,19 +242,27 @@ def fig_fouling(data: ReportData) -> ReportFigure:
     elif data.forecast is None:
         cap += " (No fouling forecast in the source.)"
     removed = []
+    t_lo, t_hi = _naive([data.period[0]])[0], _naive([data.period[1]])[0]
+    near = (t_hi - t_lo) / 20 if not (np.isnat(t_lo) or np.isnat(t_hi)) else None
+    level, last_x = 0, None
     for _, c in data.cips.iterrows():
         if pd.isna(c["cip_start"]) or not math.isfinite(c["R_th_f_removed_pct"]):
             continue
         xc = _naive([c["cip_start"]])[0] + (_naive([c["cip_end"]])[0] - _naive([c["cip_start"]])[0]) / 2
+        # labels closer than 1/20 of the period are staggered in three rows, so none hides another
+        level = (level + 1) % 3 if (near is not None and last_x is not None
+                                    and xc - last_x < near) else 0
+        last_x = xc
         ax.annotate(f"−{c['R_th_f_removed_pct']:.0f} %", (xc, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(0, -2), textcoords="offset points", ha="center", va="top", fontsize=7.5,
+                    xytext=(0, -2 - 11 * level), textcoords="offset points", ha="center", va="top",
+                    fontsize=7.5,
                     bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="0.5",
                               linewidth=0.5))
         removed.append((xc, float(c["R_th_f_removed_pct"])))
     if removed:
         series["cip_removed_pct"] = (np.array([r[0] for r in removed]), np.array([r[1] for r in removed]))
     ax.set_ylabel("R_th,f [1e-3 K/kW]")
-    ax.legend(loc="lower right")
+    ax.legend(loc="best")
     ax2.plot(x, share, marker="s", markersize=3.5, linestyle="none", color="0.2",
              fillstyle="none", label="share of the evaporator resistance")
     ax2.set_ylabel("share of R_eva [%]")

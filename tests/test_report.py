@@ -317,7 +317,7 @@ def test_period_selection(synthetic, replay_dir, work):
     assert len(data.windows) == 2 and len(data.cips) == 0
 
 
-def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, work):
+def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, synthetic, work):
     """A replay directory in the new contract's names (R_th_f_share_pct, p_m_gm_barg,
     advice_confident, dCOP_opt_sd_pct, forecast.csv, samples.csv, meta.json) reads the same."""
     data, _ = replay_report
@@ -344,11 +344,13 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, wor
     s = data.samples.copy()
     s["timestamp"] = s["timestamp"].dt.strftime("%Y-%m-%dT%H:%M:%SZ")
     s["usable"] = np.where(s["usable"] > 0.5, "true", "false")
-    s.drop(columns=["N_LS_model", "N_HS_model"]).to_csv(new / "samples.csv", index=False)
+    # samples.csv as the contract lists it: without the boundary conditions, which --data supplies
+    s.drop(columns=["N_LS_model", "N_HS_model", "T_source_in", "T_source_out", "T_sink_in",
+                    "V_source", "V_sink"]).to_csv(new / "samples.csv", index=False)
     (new / "meta.json").write_text(json.dumps({"plant": "Test plant 2 MW", "n_rows": 720,
                                                "hp_edge_version": "9.9.9"}))
     out = work / "contract.html"
-    _report([str(new), "--out", str(out)])
+    _report([str(new), "--out", str(out), "--data", str(synthetic[1])])
     html = out.read_text(encoding="utf-8")
     assert_self_contained(html)
     assert "Test plant 2 MW" in html and "replay made by version 9.9.9" in html
@@ -359,6 +361,9 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, wor
     assert f"Why: gain within its uncertainty ({len(w) // 2})." in html
     assert pts["timeseries"]["COP_adaptive"] == int(np.isfinite(data.samples["COP_adaptive"]).sum())
     assert "Dash-dot: the fouling forecast" in html
+    # the model values are the file's (not recomputed), the operating point comes from --data
+    assert "model values computed by the report" not in html
+    assert pts["cop_vs_setpoint"]["COP_clean"] > 50
 
 
 def test_old_replay_directory_without_samples_says_what_is_missing(replay_dir, work, capsys):

@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     "edge.commands.sim_cmds",        # simulate
     "edge.commands.analysis_cmds",   # calibrate, optimize, fit-surrogate, replay
     "edge.commands.gateway_cmds",    # run, demo, read, check-config
+    "edge.commands.report_cmds",     # report, export-history
 )
 
 

@@ -8,6 +8,9 @@ What the demo changes against config/gateway.yaml (so that advice shows within a
 * a calibration needs 30 usable samples instead of 60 (the first advice after ~45 s of wall time);
   the calibration interval (15 plant minutes = 15 s) and window (2 plant hours) stay as configured;
 * history and state go to a fresh temporary directory (``--state-dir`` keeps them);
+* at the end, a report of the run (``hp-edge report`` on the demo's history database and state
+  directory) is written to ``--report`` (default: ``report.html`` in ``--state-dir``, else
+  ``demo-report.html`` in the current directory, since the temporary directory goes away);
 * commissioning first (a few seconds): the simulator's hidden truth differs from plant.yaml (e.g.
   its clean evaporator is 7 % worse than the data sheet), so, as on a real site, the initial
   calibration runs on 100 minutes of clean-evaporator operation (the simulator's plant with its
@@ -40,6 +43,7 @@ DEMO_SPEED = 60.0
 DEMO_SCAN_S = 0.25
 DEMO_MIN_WINDOW = 30
 REFRESH_S = 2.0
+DEMO_REPORT = "demo-report.html"
 
 
 def demo_config(cfg: GatewayConfig, port: int, state_dir: Path, scan_s: float = DEMO_SCAN_S,
@@ -80,24 +84,54 @@ def commission(state_dir: Path, plant_file: Path, sim_cfg=None, minutes: float =
     return json.loads(out.getvalue())
 
 
+def default_report_path(state_dir: Path | None) -> Path:
+    """Where the demo's report goes without ``--report``."""
+    return Path(state_dir) / "report.html" if state_dir else Path(DEMO_REPORT)
+
+
 async def run_demo(config: Path, minutes: float | None = None, speed: float = DEMO_SPEED,
                    state_dir: Path | None = None, refresh_s: float = REFRESH_S,
-                   out: TextIO | None = None, commissioning: bool = True) -> int:
-    """Run simulator + gateway until Ctrl-C / SIGTERM, or ``minutes`` of wall time."""
+                   out: TextIO | None = None, commissioning: bool = True,
+                   report: Path | None | bool = True) -> int:
+    """Run simulator + gateway until Ctrl-C / SIGTERM, or ``minutes`` of wall time; then write a
+    report of the run to ``report`` (True: ``default_report_path``; None/False: none)."""
     from edge.config import load_config
 
     out = out or sys.stdout
+    if report is True:
+        report = default_report_path(state_dir)
 
     cfg = load_config(config)
     with tempfile.TemporaryDirectory(prefix="hp-edge-demo-") as tmp:
         where = Path(state_dir) if state_dir else Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
         with _demo_logging(where / "demo.log"):
-            return await _demo(cfg, where, speed, minutes, refresh_s, out, commissioning)
+            return await _demo(cfg, where, speed, minutes, refresh_s, out, commissioning,
+                               Path(report) if report else None)
+
+
+def write_report(cfg: GatewayConfig, path: Path, out: TextIO) -> bool:
+    """The report of a gateway run (its history database and state directory) -> ``path``.
+    Says why when it cannot be written (no matplotlib, no samples yet) and returns False."""
+    from edge.plantfile import PlantFileError, load_plant
+    from edge.report import MatplotlibMissing, ReportSourceError, build_report, load_gateway
+
+    try:
+        params = load_plant(cfg.plant_file)
+        data = load_gateway(cfg.history_db, cfg.state_dir, params, str(cfg.plant_file),
+                            window_hours=cfg.calibration_window_h)
+        res = build_report(data, path)
+    except (MatplotlibMissing, ReportSourceError, PlantFileError, OSError) as exc:
+        _print(out, f"report not written: {exc}\n")
+        return False
+    drawn = sum(f.png is not None for f in res.figures)
+    _print(out, f"report of this run ({drawn} of {len(res.figures)} figures): "
+                f"{res.path.resolve()}\n")
+    return True
 
 
 async def _demo(cfg, where: Path, speed: float, minutes: float | None, refresh_s: float,
-                out: TextIO, commissioning: bool) -> int:
+                out: TextIO, commissioning: bool, report: Path | None = None) -> int:
     from edge.service import GatewayService
     from simulator.server import PlantSimulator
 
@@ -132,6 +166,9 @@ async def _demo(cfg, where: Path, speed: float, minutes: float | None, refresh_s
         if writes_outside:
             log.error("writes outside the advisory block: %s", writes_outside)
             return 1
+        if report is not None:
+            _print(out, "writing the report of this run ...\n")
+            await asyncio.to_thread(write_report, dcfg, report, out)
         return rc
     finally:
         await sim.stop()

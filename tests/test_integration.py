@@ -434,10 +434,15 @@ def test_bench_gateway_runs_and_reports_its_figures():
     assert out["cycles"] > 0 and out["gateway_rss_mb"] > 0 and out["gateway_cpu_s"] > 0
 
 
-def test_demo_stops_by_itself_and_shows_the_block(capsys):
+def test_demo_stops_by_itself_shows_the_block_and_ends_with_a_report(capsys, tmp_path):
+    report = tmp_path / "demo.html"
     rc = cli_main(["demo", "--minutes", "0.12", "--speed", "300", "--refresh", "2",
-                   "--no-commissioning"])
+                   "--no-commissioning", "--report", str(report)])
     out = capsys.readouterr().out
     assert rc == 0
     assert "heartbeat" in out and "simulator truth" in out and "[ ] comm_fault" in out
-    assert out.rstrip().endswith("all inside the advisory block")
+    assert "all inside the advisory block\nwriting the report of this run ...\n" in out
+    assert out.rstrip().endswith(f"figures): {report.resolve()}")
+    html = report.read_text(encoding="utf-8")
+    assert "hp-edge report" in html and "gateway history" in html
+    assert 'data-figure="timeseries" data-points="COP_measured=' in html

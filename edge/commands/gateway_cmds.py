@@ -342,6 +342,10 @@ def register_run_demo(sub) -> None:
     p.add_argument("--no-commissioning", action="store_true",
                    help="skip the initial calibration on clean simulated operation (the fouling "
                    "estimate then carries the data sheet's error)")
+    rep = p.add_mutually_exclusive_group()
+    rep.add_argument("--report", help="write the report of the run here (default: report.html in "
+                     "--state-dir, else demo-report.html in the current directory)")
+    rep.add_argument("--no-report", action="store_true", help="write no report at the end")
     p.set_defaults(func=cmd_demo)
 
 
@@ -398,7 +402,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     try:
         return asyncio.run(run_demo(Path(args.config), args.minutes, args.speed,
                                     Path(args.state_dir) if args.state_dir else None,
-                                    args.refresh, commissioning=not args.no_commissioning))
+                                    args.refresh, commissioning=not args.no_commissioning,
+                                    report=False if args.no_report else
+                                    (Path(args.report) if args.report else True)))
     except (StartupError, CommissioningError) as exc:
         print(f"{exc}; nothing was started.", file=sys.stderr)
         return 2

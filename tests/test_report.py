@@ -45,7 +45,7 @@ def work(tmp_path_factory):
 @pytest.fixture(scope="module")
 def synthetic(plant, work):
     """12 recorded hours: 2 h commissioning (clean), 3 days later 10 h with a flagged 1.5-h CIP."""
-    from model.synthetic import Noise, Operation, Truth, generate
+    from simulator.synthetic import Noise, Operation, Truth, generate
     op = Operation(hours=12, commissioning_minutes=120, gap_after_commissioning_days=3,
                    cip_starts_h=(6.0,), cip_duration_h=1.5)
     h = generate(plant, op, Truth(), Noise(), seed=3)

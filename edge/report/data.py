@@ -346,7 +346,7 @@ def load_gateway(history_db: str | Path, state_dir: str | Path, params, plant: s
                  ranges: dict | None = None) -> ReportData:
     """The gateway's history database (samples and advice tables) and its state directory."""
     from edge.io.historydb import HistoryDbError, read_table, utc_index
-    from model.replay import detect_cips
+    from model.analysis.replay import detect_cips
 
     notes: list[str] = []
     start, end = utc(start), utc(end)
@@ -368,7 +368,7 @@ def load_gateway(history_db: str | Path, state_dir: str | Path, params, plant: s
         raise ReportSourceError(f"{history_db}: samples have no 'usable' column (not a gateway "
                                 "history)")
     windows = _windows_from_advice(adv, window_hours, params.ambient_pressure / 1e5, notes)
-    # CIPs: the replay's rule (model.replay.detect_cips) on the stored usable/reason and cip flag
+    # CIPs: the replay's rule (model.analysis.replay.detect_cips) on the stored usable/reason and cip flag
     cip_rows = []
     if len(raw):
         cip_flag = (pd.to_numeric(raw["cip"], errors="coerce").fillna(0).to_numpy() > 0.5

@@ -74,8 +74,8 @@ TIME_SOURCES = ("wall", "plc")
 ADVICE_STALE_INTERVALS = 1.5
 MAX_FAILED_CYCLES = 10      # consecutive cycles raising an unexpected error: exit code 1
 STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_failed",
-                "model_infeasible", "comm_fault", "advice_stale", "storage_fault", "clock_fault",
-                "sensor_fault")
+                "model_infeasible", "comm_fault", "advice_stale", "advice_low_confidence",
+                "storage_fault", "clock_fault", "sensor_fault")
 # advisory fields the loop fills itself; an advisor provides the others
 LOOP_FIELDS = ("heartbeat", "status", "last_update", "advice_age_s")
 
@@ -90,6 +90,8 @@ class Advice:
     message : why a step failed or was skipped ('' when all went well)
     detail : report for the history (NRMSE per target, iterations, run time, ...)
     skipped : nothing was attempted (e.g. too few usable samples): no failure bit
+    low_confidence : the recommendation is the current set point because the model cannot tell
+        where the optimum lies (status bit advice_low_confidence; the reason is in ``message``)
     """
     t: float
     values: Mapping[str, float] = field(default_factory=dict)
@@ -98,6 +100,7 @@ class Advice:
     message: str = ""
     detail: Mapping[str, Any] = field(default_factory=dict)
     skipped: bool = False
+    low_confidence: bool = False
 
     @property
     def ok(self) -> bool:
@@ -505,6 +508,8 @@ class Gateway:
             age = self._advice_age()
             if age is None or age > ADVICE_STALE_INTERVALS * self.cfg.calibration_interval_s:
                 bits.add("advice_stale")
+        if adv is not None and adv.low_confidence:
+            bits.add("advice_low_confidence")
         fault = getattr(self.advisor, "storage_fault", None)
         self.snapshot.storage_fault = fault
         if fault is not None:

@@ -1,17 +1,19 @@
-"""The model side of the gateway: measured-side processing, history, state, and one calibration
-cycle (fouling calibration -> set-point optimization -> advisory values).
+"""The model side of the gateway: measured-side processing, history, state, and one analysis
+window (model.analysis.chain, the same chain replay runs) -> advisory values.
 
 ``ModelAdvisor`` is what ``edge.loop.Gateway`` calls from worker threads:
 
 * ``ingest(samples)`` - closed one-minute samples -> ``model.measured.process`` (with the rows
   before them as context, so ramps after a start or a gap are recognised) -> the history store;
-* ``advise(t_end)`` - the usable window ending at ``t_end`` -> fouling calibration of the fixed
-  model (``model.calibration``) -> the adaptive model -> set-point optimization (adaptive model or
-  surrogate) -> the advisory values of SPEC 7.3, stored in the history and the fouling state file;
+* ``advise(t_end)`` - the usable window ending at ``t_end`` -> ``AnalysisChain.window``: compressor
+  learning, fouling calibration, the adaptive model, the set-point advice with its uncertainty and
+  confidence -> the advisory values of SPEC 7.3, stored in the history; the chain's state (fouling
+  calibration, learned compressors, what the next window needs) in the state directory;
 * ``restored()`` - the last good advice after a restart.
 
 The fixed model is plant.yaml plus the initial calibration and the clean pressure-drop fit from the
-state directory when they exist; the adaptive model adds the latest fouling calibration.
+state directory when they exist; the adaptive model adds the learned compressor curves and the
+latest fouling calibration.
 """
 from __future__ import annotations
 
@@ -40,10 +42,11 @@ from edge.repeatlog import RepeatLog
 from edge.statefiles import StateError
 from edge.store import HistoryStore
 from model import measured
+from model.analysis.chain import AnalysisChain, ChainSettings, WindowResult
+from model.analysis.compressors import CompressorLearner, LearningError
 from model.batch import INPUT_COLUMNS, simulate_batch, solved_mask
-from model.calibration import (CalibrationError, CalibrationResult, apply_state, calibrate,
-                               evaporator_share, spec_from_config)
-from model.optimize import OptimizationError, optimize_setpoint
+from model.calibration import CalibrationError, spec_from_config
+from model.optimize import OptimizationError
 from model.params import ParamError, PlantParams
 from model.surrogate import Surrogate, SurrogateError
 
@@ -63,6 +66,8 @@ class ModelState:
     dp_clean: dict | None = None
     fouling: dict | None = None
     surrogate: dict | None = None
+    compressors: dict | None = None
+    chain: dict | None = None
 
 
 class StartupError(Exception):
@@ -96,12 +101,15 @@ class StateDir:
                 st.surrogate = Surrogate.load(self.fallback_surrogate)
         except (StateError, SurrogateError) as exc:
             raise StartupError(str(exc)) from exc
-        try:
-            st.fouling = statefiles.read_state(statefiles.FOULING_CALIBRATION, self.dir)
-        except StateError as exc:
-            log.error("%s; starting without a fouling calibration", exc)
+        for attr, name, what in (("fouling", statefiles.FOULING_CALIBRATION, "a fouling calibration"),
+                                 ("compressors", statefiles.COMPRESSORS, "learned compressor curves"),
+                                 ("chain", statefiles.CHAIN, "the previous window's state")):
+            try:     # the gateway's own results: an unreadable one is recomputed, not fatal
+                setattr(st, attr, statefiles.read_state(name, self.dir))
+            except StateError as exc:
+                log.error("%s; starting without %s", exc, what)
         for name, doc in (("initial calibration", st.initial), ("dp_clean fit", st.dp_clean),
-                          ("fouling calibration", st.fouling)):
+                          ("fouling calibration", st.fouling), ("compressor curves", st.compressors)):
             if doc is not None:
                 log.info("state: %s of %s loaded", name, doc.get("saved_at", "?"))
         if st.initial is None:
@@ -112,6 +120,9 @@ class StateDir:
 
     def save_fouling(self, doc: dict) -> None:
         statefiles.write_state(statefiles.FOULING_CALIBRATION, doc, self.dir)
+
+    def save(self, name: str, doc: dict) -> None:
+        statefiles.write_state(name, doc, self.dir)
 
 
 class ModelAdvisor:
@@ -137,11 +148,19 @@ class ModelAdvisor:
             raise StartupError(f"{cfg.plant_file}: {exc}") from exc
         self.state = state_io.load_all()
         try:
-            self.fixed = apply_state(self.base, self.state.initial, self.state.dp_clean)
             self.spec = spec_from_config(self.base.extra, "fouling")
-        except (CalibrationError, KeyError, TypeError, ValueError) as exc:
+            self.chain = AnalysisChain(self.base, self.spec, ChainSettings.from_config(
+                self.base.extra, min_samples=int(cfg.min_window_samples),
+                optimize=cfg.optimizer == "model"))
+            learner = (CompressorLearner.from_dict(self.state.compressors, self.base,
+                                                   self.chain.s.learning)
+                       if self.state.compressors is not None else None)
+            self.cstate = self.chain.new_state(self.state.initial, self.state.dp_clean, learner)
+        except (CalibrationError, LearningError, KeyError, TypeError, ValueError) as exc:
             raise StartupError(f"calibration state in {getattr(state_io, 'dir', '?')} or "
                                f"{cfg.plant_file}: {exc}") from exc
+        self._restore_chain(self.state.chain)
+        self.fixed = self.cstate.fixed
         self.surrogate = self.state.surrogate   # model.surrogate.Surrogate or None
         if cfg.optimizer == "surrogate" and self.surrogate is None:
             raise StartupError(f"{cfg.path}: optimizer 'surrogate' but no surrogate.json in "
@@ -165,22 +184,50 @@ class ModelAdvisor:
         """Why the history or the state directory is not writable right now (None: both are)."""
         return self.store.fault or self._state_fault
 
-    def _save_fouling(self, doc: dict) -> None:
-        """Persist the fouling calibration; on failure keep it for a retry and report it
+    def _save_state(self, docs: dict[str, dict]) -> None:
+        """Persist the chain's state documents; on failure keep them for a retry and report it
         (storage_fault), never raise: the advice is still written to the block."""
-        try:
-            self.state_io.save_fouling(doc)
-        except (StateError, OSError) as exc:      # read-only, full disk, cannot create
-            self._unsaved, self._state_fault = doc, str(exc)
-            self._state_log.fail(f"fouling calibration not persisted (kept in memory, retried "
-                                 f"with every sample): {exc}")
-            return
+        pending = {**(self._unsaved or {}), **docs}
+        for name in list(pending):
+            try:
+                if name == statefiles.FOULING_CALIBRATION:
+                    self.state_io.save_fouling(pending[name])
+                else:
+                    self.state_io.save(name, pending[name])
+            except (StateError, OSError) as exc:      # read-only, full disk, cannot create
+                self._unsaved, self._state_fault = pending, str(exc)
+                self._state_log.fail(f"state not persisted (kept in memory, retried with every "
+                                     f"sample): {exc}")
+                return
+            del pending[name]
         self._unsaved, self._state_fault = None, None
-        self._state_log.ok("fouling calibration saved")
+        self._state_log.ok("state saved")
+
+    def _save_fouling(self, doc: dict) -> None:
+        self._save_state({statefiles.FOULING_CALIBRATION: doc})
 
     def _retry_storage(self) -> None:
-        if self._unsaved is not None:
-            self._save_fouling(self._unsaved)
+        if self._unsaved:
+            self._save_state({})
+
+    def _restore_chain(self, doc: dict | None) -> None:
+        """The previous window's hand-over (previous recommendation, condenser factor, LS set
+        point, change-penalty parameters) from chain_state.json."""
+        if not doc:
+            return
+        st = self.cstate
+        for key in ("last_rec_barg", "cond_factor", "T_out_sp_C"):
+            v = doc.get(key)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+                setattr(st, key, float(v))
+        prev = doc.get("fouling_previous")
+        if isinstance(prev, dict):
+            st.fouling_previous = prev
+
+    def _chain_doc(self) -> dict:
+        st = self.cstate
+        return {"last_rec_barg": st.last_rec_barg, "cond_factor": st.cond_factor,
+                "T_out_sp_C": st.T_out_sp_C, "fouling_previous": st.fouling_previous}
 
     # ------------------------------------------------------------------------- ingest
 
@@ -237,7 +284,8 @@ class ModelAdvisor:
     # ------------------------------------------------------------------------- advise
 
     def advise(self, t_end: float) -> Advice:
-        """One calibration cycle on the usable window ending at ``t_end`` (sample clock)."""
+        """One analysis window (``AnalysisChain.window``) on the usable samples ending at
+        ``t_end`` (sample clock)."""
         t0 = time.perf_counter()
         window = self.store.window(t_end, self.window_s, usable_only=True)
         n = len(window)
@@ -245,74 +293,48 @@ class ModelAdvisor:
             return Advice(t_end, skipped=True,
                           message=f"{n} usable samples in the last {self.cfg.calibration_window_h:g}"
                                   f" h, {self.cfg.min_window_samples} needed")
-        previous = self.state.fouling["params"] if self.state.fouling else None
-        span = (_iso(window["ts"].iloc[0]), _iso(window["ts"].iloc[-1]))
-        try:
-            result = calibrate(window, self.fixed, self.spec, previous=previous, window=span)
-        except (CalibrationError, ValueError, ArithmeticError) as exc:
+        with self._lock:
+            res = self.chain.window(window, self.cstate)
+        detail = self._detail(res)
+        if not res.calibration_ok:
             return self._record(Advice(t_end, calibration_ok=False, optimization_ok=False,
-                                       message=f"fouling calibration failed: {exc}"))
-        if not result.success or not all(math.isfinite(v) for v in result.params.values()):
-            return self._record(Advice(t_end, calibration_ok=False, optimization_ok=False,
-                                       message=f"fouling calibration failed: {result.message}",
-                                       detail={"calibration": result.to_dict()}))
-        doc = result.to_dict()
-        self._save_fouling(doc)        # disk full, read-only: kept, retried, storage_fault
-        self.state.fouling = doc
-        adaptive = result.apply(self.fixed)
-        values, detail = self._fouling_values(window, result, adaptive)
-        detail["calibration"] = doc
-        try:
-            opt = self._optimize(window, adaptive)
-        except (ValueError, ArithmeticError) as exc:   # OptimizationError, SurrogateError
-            return self._record(Advice(t_end, values, optimization_ok=False,
-                                       message=f"set-point optimization failed: {exc}",
-                                       detail=detail))
-        values.update(opt["values"])
-        detail["optimization"] = opt["detail"]
-        detail["run_time_s"] = time.perf_counter() - t0
-        return self._record(Advice(t_end, values, detail=detail))
-
-    def _fouling_values(self, window: pd.DataFrame, result: CalibrationResult,
-                        adaptive: PlantParams) -> tuple[dict, dict]:
-        V = float(np.nanmean(window["V_source"].to_numpy(dtype=float)))
-        dp_clean_bar = float(adaptive.dp_clean(V / 3600.0)) / 1e5
-        cop_meas = _ratio(window["Q_sink_kW"], window["W_total_kW"])
-        inputs = window[list(INPUT_COLUMNS)]
-        sim_a = simulate_batch(inputs, adaptive, columns=("Q_sink_kW", "W_total_kW", "COP"))
-        sim_f = simulate_batch(inputs, self.fixed, columns=("Q_sink_kW", "W_total_kW", "COP"))
-        both = solved_mask(sim_a) & solved_mask(sim_f)
-        values = {
-            "R_th_f": result.params["R_th_f_K_per_kW"],
-            "R_th_f_share": 100.0 * evaporator_share(adaptive),
-            "CF_dp_f": result.params["CF_dp_f"],
-            "dp_fouling": (result.params["CF_dp_f"] - 1.0) * dp_clean_bar,
-            "nrmse_pct": 100.0 * result.objective,
-            "COP_measured": cop_meas,
-            "COP_adaptive": _ratio(sim_a["Q_sink_kW"][both], sim_a["W_total_kW"][both]),
-            "COP_fixed": _ratio(sim_f["Q_sink_kW"][both], sim_f["W_total_kW"][both]),
-        }
-        detail = {"n_samples": int(len(window)), "n_solved_both": int(both.sum()),
-                  "V_source_mean_m3h": V}
-        return values, detail
-
-    def _optimize(self, window: pd.DataFrame, adaptive: PlantParams) -> dict:
-        """Recommended set point and its expected effect against the window's actual set point.
-
-        ``optimizer: model`` - ``model.optimize.optimize_setpoint`` on the adaptive model.
-        ``optimizer: surrogate`` - the 27-term polynomial gives the optimal p_m from the adaptive
-        model's state at the surrogate's reference set point (window means); the expected COP and
-        heat-output changes are then those of the adaptive model at that set point against the
-        actual one (two window simulations), so both optimizers report the same quantity.
-        Raises OptimizationError / SurrogateError (ValueError) when there is no answer.
-        """
-        amb = adaptive.ambient_pressure / 1e5
+                                       message=res.status.removeprefix("failed: "), detail=detail))
+        docs = {statefiles.FOULING_CALIBRATION: res.detail["calibration"],
+                statefiles.CHAIN: self._chain_doc()}
+        if self.cstate.learner is not None:
+            docs[statefiles.COMPRESSORS] = self.cstate.learner.to_dict()
+        self._save_state(docs)          # disk full, read-only: kept, retried, storage_fault
+        self.state.fouling = res.detail["calibration"]
+        values = res.advisory_values()
         if self.cfg.optimizer == "surrogate":
-            return self._optimize_surrogate(window, adaptive, amb)
-        r = optimize_setpoint(window, adaptive)
-        values = {"p_m_sp_rec": r.p_m_sp_opt_barg, "dCOP_pct": r.dCOP_opt_pct,
-                  "dQ_sink_pct": r.dQ_sink_opt_pct, "p_m_gm": r.p_m_gm_bar_a - amb}
-        return {"values": values, "detail": {"optimizer": "model", **r.to_dict()}}
+            try:
+                opt = self._optimize_surrogate(window, res.detail["adaptive_params"],
+                                               self.base.ambient_pressure / 1e5)
+            except (ValueError, ArithmeticError) as exc:   # OptimizationError, SurrogateError
+                return self._record(Advice(t_end, values, optimization_ok=False,
+                                           message=f"set-point optimization failed: {exc}",
+                                           detail=detail))
+            values.update(opt["values"])
+            detail["optimization"] = opt["detail"]
+            detail["run_time_s"] = time.perf_counter() - t0
+            return self._record(Advice(t_end, values, detail=detail))
+        detail["run_time_s"] = time.perf_counter() - t0
+        if not res.optimization_ok:
+            return self._record(Advice(t_end, values, optimization_ok=False,
+                                       message=res.status.removeprefix("failed: "), detail=detail))
+        return self._record(Advice(t_end, values, detail=detail,
+                                   low_confidence=not res.advice_confident,
+                                   message=res.advice_note))
+
+    @staticmethod
+    def _detail(res: WindowResult) -> dict:
+        """The window's figures for the advice table (JSON; no model objects)."""
+        row = {k: v for k, v in res.row().items() if isinstance(v, (int, float, str, bool))}
+        d = {"window": row}
+        for k in ("calibration", "advice"):
+            if k in res.detail:
+                d[k] = res.detail[k]
+        return d
 
     def _optimize_surrogate(self, window: pd.DataFrame, adaptive: PlantParams, amb: float) -> dict:
         sur = self.surrogate
@@ -356,7 +378,7 @@ class ModelAdvisor:
         rec: dict[str, Any] = {k: v for k, v in adv.values.items()}
         rec.update(ok=adv.ok, calibration_ok=adv.calibration_ok,
                    optimization_ok=adv.optimization_ok, message=adv.message,
-                   detail=dict(adv.detail))
+                   low_confidence=adv.low_confidence, detail=dict(adv.detail))
         self.store.add_advice(adv.t, rec)
         return adv
 
@@ -366,10 +388,12 @@ class ModelAdvisor:
         last = self.store.latest_advice(ok_only=True)
         if last is None:
             return None
-        skip = {"ts", "wall", "ok", "calibration_ok", "optimization_ok", "message", "detail"}
+        skip = {"ts", "wall", "ok", "calibration_ok", "optimization_ok", "message", "detail",
+                "low_confidence"}
         values = {k: v for k, v in last.items()
                   if k not in skip and isinstance(v, (int, float)) and v is not None}
-        return Advice(float(last["ts"]), values, message="restored after restart")
+        return Advice(float(last["ts"]), values, message="restored after restart",
+                      low_confidence=bool(last.get("low_confidence")))
 
 
 def _ratio(num, den) -> float:

@@ -21,7 +21,9 @@ INITIAL_CALIBRATION = "initial_calibration.json"
 FOULING_CALIBRATION = "fouling_calibration.json"
 DP_CLEAN = "dp_clean.json"
 SURROGATE = "surrogate.json"
-KNOWN = (INITIAL_CALIBRATION, FOULING_CALIBRATION, DP_CLEAN, SURROGATE)
+COMPRESSORS = "compressors.json"          # learned compressor curves (model.analysis.compressors)
+CHAIN = "chain_state.json"                # what one analysis window hands to the next
+KNOWN = (INITIAL_CALIBRATION, FOULING_CALIBRATION, DP_CLEAN, SURROGATE, COMPRESSORS, CHAIN)
 _NAME = re.compile(r"^[a-z0-9_]+\.json$")
 
 

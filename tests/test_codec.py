@@ -321,7 +321,7 @@ def test_advisory_encode_layout(adv):
     words = encode_advisory(adv, {"p_m_sp_rec": 16.0, "last_update": 0x12345678,
                                   "COP_measured": 4.5, "advice_age_s": 60},
                             {"data_stale", "comm_fault"}, heartbeat=7)
-    assert len(words) == adv.size == 32
+    assert len(words) == adv.size == 64
     assert words[0] == 7
     assert words[1] == 0b100001
     assert words[2:4] == [0x1234, 0x5678]
@@ -329,7 +329,8 @@ def test_advisory_encode_layout(adv):
     assert words[20:22] == [0x4090, 0x0000]      # 4.5
     assert words[28:30] == [0x0000, 60]
     assert words[6:8] == [0x7FC0, 0x0000]        # dCOP_pct not given -> NaN
-    assert words[30:] == [0, 0]                  # not covered by any field
+    assert words[30:32] == [0x7FC0, 0x0000]      # dCOP_sd_pct not given -> NaN
+    assert words[36:] == [0] * 28                # not covered by any field
 
 
 def test_advisory_matches_pymodbus_words(adv):
@@ -353,7 +354,7 @@ def test_advisory_round_trip(adv):
 
 
 def test_advisory_decode_names_unconfigured_bits(adv):
-    words = [0] * 32
+    words = [0] * 64
     words[1] = (1 << 15) | 1
     assert decode_advisory(adv, words)["status_bits"] == ["data_stale", "bit 15"]
 
@@ -376,5 +377,5 @@ def test_advisory_encode_refuses(adv, values, bits, heartbeat, fragment):
 def test_status_word(adv):
     assert status_word(adv, []) == 0
     assert status_word(adv, ["advice_stale", "data_stale"]) == 0x41
-    with pytest.raises(ValueError, match="wrong size|has 32 words"):
+    with pytest.raises(ValueError, match="wrong size|has 64 words"):
         decode_advisory(adv, [0] * 31)

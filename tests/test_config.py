@@ -34,8 +34,8 @@ def test_default_config_loads():
     assert (t.scale, t.offset, t.range, t.sentinel, t.byte_order) == (0.01, 0.0, (0.0, 90.0), -32768, "ABCD")
     assert cfg.plc.host == "127.0.0.1" and cfg.plc.port == 5020 and cfg.plc.device_id == 1
     adv = cfg.advisory
-    assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 32, "ABCD")
-    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 30, 2))
+    assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 64, "ABCD")
+    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2))
     assert adv.field("last_update").type == "uint32"
     assert dict(adv.status_bits)[5] == "comm_fault"
     assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "model"
@@ -151,14 +151,14 @@ CASES = {
                  ["config/tags.yaml: tag 'timestamp': tag names must be identifiers (letters, "
                   "digits, _) and not 'timestamp'"]),
     "advisory field outside": ("gateway.yaml",
-                               lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=32),
+                               lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=64),
                                ["config/gateway.yaml: advisory field 'advice_age_s': key 'offset': "
-                                "32 is outside the block (size 32)"]),
+                                "64 is outside the block (size 64)"]),
     "advisory 32-bit crossing end": ("gateway.yaml",
-                                     lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=31),
+                                     lambda d: d["advisory"]["fields"]["advice_age_s"].update(offset=63),
                                      ["config/gateway.yaml: advisory field 'advice_age_s': key 'offset': "
-                                      "uint32 at offset 31 crosses the block's end (needs offsets "
-                                      "31..32, size 32)"]),
+                                      "uint32 at offset 63 crosses the block's end (needs offsets "
+                                      "63..64, size 64)"]),
     "advisory fields overlap": ("gateway.yaml",
                                 lambda d: d["advisory"]["fields"]["dCOP_pct"].update(offset=5),
                                 ["config/gateway.yaml: advisory field 'dCOP_pct': key 'offset': "
@@ -235,7 +235,7 @@ def test_exact_error_messages(cfgdir, name):
 def test_advisory_block_overlapping_a_tag(cfgdir):
     edit(cfgdir, "tags.yaml", lambda d: d["tags"]["life_counter"].update(address=1010))
     assert problems() == [
-        "config/gateway.yaml: section 'advisory': key 'start': block holding 1000..1031 overlaps "
+        "config/gateway.yaml: section 'advisory': key 'start': block holding 1000..1063 overlaps "
         "tag 'life_counter' (holding 1010..1010) of config/tags.yaml"]
 
 
@@ -327,7 +327,7 @@ def test_check_config_prints_the_layout(cfgdir, capsys, no_network):
     assert "FC4 input 0..31 (32 registers): T_sink_in, T_sink_out" in out
     assert "FC3 holding 100..110 (11 registers): plc_clock, life_counter, p_m_sp" in out
     assert "  p_suc_LS      input    16    float32  CDAB   1      0       bar   [-0.9, 25]" in out
-    assert "1028..1029  28      advice_age_s  uint32   s" in out
+    assert "1028..1029  28      advice_age_s     uint32   s" in out
     assert "5    0x0020  comm_fault" in out
 
 

@@ -335,20 +335,20 @@ def test_write_advisory_is_one_fc16_of_the_whole_block():
             async with client(server.port) as plc:
                 await plc.connect()
                 await plc.write_advisory(words)
-                stored = await server.async_getValues(1, 3, 1000, 32)
+                stored = await server.async_getValues(1, 3, 1000, 64)
                 back = await plc.read_advisory()
             return server.requests, stored, back
 
     requests, stored, back = run(scenario())
     writes = [r for r in requests if r[0] == 16]
-    assert writes == [(16, 1000, 32, words)]
+    assert writes == [(16, 1000, 64, words)]
     assert stored == words == back
     decoded = decode_advisory(CFG.advisory, back)
     assert decoded["p_m_sp_rec"] == 17.5 and decoded["status_bits"] == ["calibration_failed"]
     assert decoded["heartbeat"] == 3 and decoded["last_update"] == 1_718_000_000
 
 
-@pytest.mark.parametrize("address, count", [(999, 2), (1031, 2), (110, 1), (0, 1), (1000, 33)])
+@pytest.mark.parametrize("address, count", [(999, 2), (1063, 2), (110, 1), (0, 1), (1000, 65)])
 def test_write_outside_the_advisory_block_is_refused_before_sending(address, count, monkeypatch):
     sent = []
 
@@ -376,7 +376,7 @@ def test_write_outside_the_advisory_block_is_refused_before_sending(address, cou
 def test_write_arguments_are_checked():
     async def scenario():
         plc = client(free_port())
-        with pytest.raises(ValueError, match="32 words, got 31"):
+        with pytest.raises(ValueError, match="64 words, got 31"):
             await plc.write_advisory([0] * 31)
         with pytest.raises(ValueError, match="not an integer 0..65535"):
             await plc.write_registers(1000, [70000])
@@ -412,7 +412,7 @@ def test_read_command_prints_the_block_as_the_hmi_sees_it(capsys):
 
     text_rc, text, json_rc, js = run(scenario())
     assert text_rc == 0 and json_rc == 0
-    assert "1000     heartbeat     42" in text
+    assert "1000     heartbeat        42" in text
     assert "16.5" in text and "NaN (no value)" in text
     assert "[x]  0 data_stale" in text and "[ ]  5 comm_fault" in text and "[x]  6 advice_stale" in text
     doc = json.loads(js)

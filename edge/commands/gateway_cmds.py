@@ -23,6 +23,10 @@ STATUS_BIT_NOTES = {   # what edge/loop.py does, word for word (the HMI map is g
                     "(NaN), they are older than 1.5 calibration intervals (see advice_age_s), or "
                     "their age is unknown (advice_age_s = 4294967295: no sample clock yet, or "
                     "the advice is from a later time than the sample clock shows)",
+    "advice_low_confidence": "the model cannot tell where the optimum lies, so p_m_sp_rec is the "
+                             "current set point: compressor curves not learned yet, operation or "
+                             "the optimum outside the region the curves have data for, or an "
+                             "expected gain not larger than its uncertainty (dCOP_sd_pct)",
     # issue 9 (runtime): storage, clock and sensor faults
     "storage_fault": "the history or the state directory is not writable (locked by another "
                      "process, disk full, read-only): the advice is still computed and written, "

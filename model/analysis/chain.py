@@ -350,7 +350,9 @@ class AnalysisChain:
                 state.cond_factor = k
                 adaptive = scale_condenser(adaptive, k)
                 base = scale_condenser(base, k)
+                res.detail["adaptive_params"] = adaptive
         res.detail["calibration"] = fc.to_dict()
+        res.detail["adaptive_params"] = adaptive
         self._fouling_figures(res, fc, fixed, adaptive, der)
         self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive)
         # ---- compressor residuals and drift at this window's operating point

@@ -73,6 +73,9 @@ def register(sub) -> None:
     rp.add_argument("--cip-off-minutes", type=float, default=None,
                     help="a plant stop longer than this counts as a CIP (360)")
     rp.add_argument("--no-optimize", action="store_true", help="skip the set-point optimization")
+    rp.add_argument("--hindsight", action="store_true",
+                    help="learn the compressor curves on the whole history first (default: causal, "
+                         "each window uses only the data up to its end, as the gateway would)")
     rp.add_argument("--save-state", default=None, metavar="STATE_DIR",
                     help="also save the initial, dp_clean and last fouling results as state there")
     rp.set_defaults(func=cmd_replay)
@@ -96,6 +99,14 @@ def _fail(cmd: str, exc: Exception) -> int:
     for line in str(exc).splitlines() or [type(exc).__name__]:
         print(f"hp-edge {cmd}: {line}", file=sys.stderr)
     return 2
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("hp-edge")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def _params(path):
@@ -242,7 +253,9 @@ class Progress:
 def cmd_calibrate_initial(args) -> int:
     import numpy as np
     from edge.plantfile import PlantFileError
-    from edge.statefiles import DP_CLEAN, INITIAL_CALIBRATION, StateError, write_state
+    from edge.statefiles import COMPRESSORS, DP_CLEAN, INITIAL_CALIBRATION, StateError, write_state
+    from model.analysis.chain import AnalysisChain, ChainSettings
+    from model.analysis.compressors import LearningError
     from model.calibration import CalibrationError, calibrate, calibration_frame, spec_from_config
     from model.dpfit import DpFitError, fit_dp_clean
     from model.measured import process
@@ -262,11 +275,20 @@ def cmd_calibrate_initial(args) -> int:
         ts = hist["timestamp"][mask]
         win = (ts.iloc[0].isoformat(), ts.iloc[-1].isoformat())
         data = calibration_frame(hist, processed, mask)
-        res = calibrate(data, params, spec_from_config(params.extra, "initial"), window=win)
+        # the compressors' curves from the commissioning data first, then the initial calibration
+        # with them applied (the condenser factors must not absorb the compressors' difference)
+        chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
+                              ChainSettings.from_config(params.extra))
+        learner = chain.commissioning_learner(hist.loc[mask])
+        base = learner.apply(params) if learner is not None else params
+        res = calibrate(data, base, spec_from_config(params.extra, "initial"), window=win)
         dp = fit_dp_clean(data["V_source"], data["dp_source_bar"], window=win)
         p1 = write_state(INITIAL_CALIBRATION, res.to_dict(), args.state_dir)
         p2 = write_state(DP_CLEAN, dp.to_dict(), args.state_dir)
-    except (CommandError, PlantFileError, CalibrationError, DpFitError, StateError) as exc:
+        if learner is not None:
+            write_state(COMPRESSORS, learner.to_dict(), args.state_dir)
+    except (CommandError, PlantFileError, CalibrationError, DpFitError, StateError,
+            LearningError) as exc:
         return _fail("calibrate initial", exc)
     if args.json:
         print(json.dumps({"initial": res.to_dict(), "dp_clean": dp.to_dict()}, indent=1))
@@ -397,8 +419,8 @@ def cmd_replay(args) -> int:
     import os
     from pathlib import Path
     from edge.plantfile import PlantFileError
-    from edge.statefiles import (DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION, StateError,
-                                 write_state)
+    from edge.statefiles import (COMPRESSORS, DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION,
+                                 StateError, write_state)
     from model.calibration import CalibrationError
     from model.dpfit import DpFitError
     from model.analysis.replay import ReplayError, ReplaySettings, replay
@@ -408,15 +430,24 @@ def cmd_replay(args) -> int:
         _report_reading(args.history, len(hist), skipped, nn)
         settings = ReplaySettings.from_config(params.extra, window_hours=args.window_hours,
                                               cip_off_minutes=args.cip_off_minutes,
-                                              optimize=False if args.no_optimize else None)
+                                              optimize=False if args.no_optimize else None,
+                                              hindsight=True if args.hindsight else None)
         iw = parse_window(args.initial_window) if args.initial_window else None
         res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"))
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips)):
+        for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips),
+                            ("samples.csv", res.samples)):
+            if frame is None:
+                continue
             tmp = out / f".{name}.tmp"
             frame.to_csv(tmp, index=False, float_format="%.6g")
             os.replace(tmp, out / name)
+        meta = {**res.meta, "plant": str(args.config), "history": str(args.history),
+                "hp_edge_version": _version()}
+        write_state("meta.json", meta, out)
+        if res.compressors is not None:
+            write_state(COMPRESSORS, res.compressors, out)
         text = res.summary()
         if skipped or nn:
             text = (f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}\n"
@@ -429,9 +460,12 @@ def cmd_replay(args) -> int:
             write_state(DP_CLEAN, res.dp_clean.to_dict(), args.save_state)
             if res.last_fouling is not None:
                 write_state(FOULING_CALIBRATION, res.last_fouling.to_dict(), args.save_state)
+            if res.compressors is not None:
+                write_state(COMPRESSORS, res.compressors, args.save_state)
     except (CommandError, PlantFileError, ReplayError, CalibrationError, DpFitError, StateError,
             OSError) as exc:
         return _fail("replay", exc)
     print(text)
-    print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'summary.txt'}")
+    print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'samples.csv'}, "
+          f"{out / 'summary.txt'}, {out / 'compressors.json'}, {out / 'meta.json'}")
     return 0

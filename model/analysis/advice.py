@@ -54,7 +54,9 @@ class AdviceSettings:
     max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
     dead_band_pct: float = 0.05         # move the recommendation only for more COP than this [%]
     inside_tolerance: float = 0.25      # confident only when the optimum's compressor operating
-                                        # points lie within this many margins of the covered hull
+                                        # points (and its neighbours') lie within this many margins
+                                        # of the bins the compressors have run in
+    neighbour_bar: float = 0.5          # the neighbours checked on either side of the optimum
     seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
 
     @classmethod
@@ -252,11 +254,17 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         if math.isfinite(r) and abs(r) > s.max_curve_residual:
             reasons.append(f"the learned {st} curve misses this window's measured eta_is by {r:+.3f}")
     if learner is not None and not reasons:
-        d_opt = _distance(learner, adaptive, offsets, ev.at(sp_opt))
+        # the optimum and its neighbours on both sides must lie where the curves have data (on the
+        # HS plateau the lower neighbour is the same operating point): otherwise the model's slope
+        # there, which places the optimum, comes from the data sheet's curves
+        probes = [sp_opt, sp_opt + s.neighbour_bar]
+        if not p_opt.hs_saturated:
+            probes.append(sp_opt - s.neighbour_bar)
+        d_opt = max(_distance(learner, adaptive, offsets, ev.at(min(max(x, lo), hi))) for x in probes)
         if d_opt > s.inside_tolerance:
             reasons.append(f"the model's optimum {sp_opt:.2f} bar(g) lies outside the region the "
-                           f"curves have learned from data ({d_opt:.2f} margins out): the plant has "
-                           f"not run near it yet")
+                           f"curves have learned from data ({d_opt:.2f} margins out within "
+                           f"+-{s.neighbour_bar:g} bar): the plant has not run near it yet")
     if p_opt.beyond is not None:
         reasons.append(f"the model's optimum lies beyond the region the learned curves cover "
                        f"(a step to {sp_opt:.2f} bar(g) would gain {dcop_step:+.2f} %; operation "

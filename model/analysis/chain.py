@@ -264,13 +264,17 @@ class AnalysisChain:
             learner = CompressorLearner(fixed, self.s.learning)
         return ChainState(fixed=fixed, learner=learner)
 
-    def commission(self, state: ChainState, data: pd.DataFrame) -> None:
-        """Learn from the commissioning window and keep the curves as the drift reference."""
-        if state.learner is None:
-            return
-        obs = observe(data, state.fixed, self.s.learning)
-        state.learner.update(obs)
-        state.learner.freeze_commissioning()
+    def commissioning_learner(self, data: pd.DataFrame) -> CompressorLearner | None:
+        """The compressor curves learned on the commissioning window (frozen as the drift
+        reference). Learn them before the initial calibration and calibrate with them applied: the
+        condenser factors then do not absorb the difference between the data sheet's compressors and
+        the plant's."""
+        if not self.s.learn_compressors:
+            return None
+        learner = CompressorLearner(self.plant, self.s.learning)
+        learner.update(observe(data, self.plant, self.s.learning))
+        learner.freeze_commissioning()
+        return learner
 
     def new_segment(self, state: ChainState) -> None:
         """After a CIP or a long stop: the change penalty does not reach across it."""

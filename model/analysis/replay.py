@@ -257,20 +257,21 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     init_idx = np.flatnonzero(init_mask)
     iw = (ts[init_idx[0]].isoformat(), ts[init_idx[-1]].isoformat())
     init_data = calibration_frame(history, processed, init_mask)
-    initial = calibrate(init_data, params, spec_from_config(params.extra, "initial"), window=iw)
+    chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
+                          chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
+                                                                      min_samples=int(s.min_samples)))
+    learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
+    base = learner.apply(params) if learner is not None else params
+    initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
     try:
         dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
     except DpFitError as exc:
         raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
-    chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
-                          chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
-                                                                      min_samples=int(s.min_samples)))
-    state = chain.new_state(initial.to_dict(), dpfit.to_dict())
+    state = chain.new_state(initial.to_dict(), dpfit.to_dict(), learner)
     if not initial.identifiable:
         notes.append("the initial calibration is not fully identifiable (see its warnings); the fixed "
                      "model still reproduces its targets, but the named factors are not individually "
                      "meaningful")
-    chain.commission(state, history.loc[init_mask].assign(timestamp=ts[init_mask]))
     if s.hindsight and state.learner is not None:
         state.learner.update(observe(history.loc[usable].assign(timestamp=ts[usable]), state.fixed,
                                      chain.s.learning))

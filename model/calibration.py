@@ -177,7 +177,8 @@ def spec_from_config(extra: dict, kind: str) -> CalibrationSpec:
     if not isinstance(node, dict):
         raise CalibrationError(f"key '{base}': expected a mapping")
     known = {"parameters", "goals", "tolerance", "correlation_limit", "change_penalty",
-             "use_flagged_rows", "window_minutes", "window_hours", "min_samples"}
+             "use_flagged_rows", "window_minutes", "window_hours", "min_samples",
+             "limits"}   # limits: commissioning plausibility, read by edge/commissioning.py
     for k in node:
         if k not in known:
             raise CalibrationError(f"key '{base}.{k}': unknown (known: {', '.join(sorted(known))})")

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 
 import numpy as np
-import yaml
 from scipy.optimize import brentq
 
 from model.cycle import ConvergenceError, InfeasibleOperation, ModelError, solve
@@ -37,7 +36,7 @@ from model.fluid import get_fluid
 from model.params import CycleInputs, PlantParams
 from model.units import BAR, M3H, T0
 
-from .config import SimulatorConfig, load_simulator_config
+from .config import SimulatorConfig, load_simulator_config, load_yaml_file
 from .profiles import Boundary, CipSchedule, Fouling, Profiles
 
 # plant-provided measurement tags (SPEC §4 canonical names) and their lag class
@@ -70,8 +69,7 @@ class SteadyPoint:
 
 
 def load_params(cfg: SimulatorConfig) -> PlantParams:
-    with open(cfg.plant_file, encoding="utf-8") as fh:
-        return PlantParams.from_dict(yaml.safe_load(fh))
+    return PlantParams.from_dict(load_yaml_file(cfg.plant_file))
 
 
 def true_params(nominal: PlantParams, cfg: SimulatorConfig) -> PlantParams:

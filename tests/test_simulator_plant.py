@@ -227,7 +227,7 @@ def test_config_errors_name_file_and_key(tmp_path):
         config_from_dict({"faults": [{"kind": "stuck"}]}, tmp_path / "simulator.yaml")
     bad = tmp_path / "tags.yaml"
     bad.write_text("tags:\n  T_e: {register: input, address: 0, type: int16, colour: red}\n")
-    with pytest.raises(SimConfigError, match=r"tags.yaml: tag 'T_e': unknown key 'colour'"):
+    with pytest.raises(SimConfigError, match=r"tags.yaml: line 2: tag 'T_e': unknown key 'colour'"):
         read_tags(bad)
 
 

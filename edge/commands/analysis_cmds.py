@@ -93,7 +93,8 @@ class CommandError(Exception):
 
 
 def _fail(cmd: str, exc: Exception) -> int:
-    for line in str(exc).splitlines() or [type(exc).__name__]:
+    from edge.yamlfile import format_problems
+    for line in format_problems(str(exc).splitlines() or [type(exc).__name__]):
         print(f"hp-edge {cmd}: {line}", file=sys.stderr)
     return 2
 

@@ -64,7 +64,8 @@ def _params(args):
     try:
         return load_plant(args.config, getattr(args, "backend", None))
     except PlantFileError as exc:
-        for line in str(exc).splitlines():
+        from edge.yamlfile import format_problems
+        for line in format_problems(str(exc).splitlines()):
             print(f"hp-edge: {line}", file=sys.stderr)
         raise SystemExit(2) from None
 

@@ -78,8 +78,17 @@ class TagConfig:
     device_id: int | None = None  # Modbus unit id; None: the plc section's device_id
     bit: int | None = None        # one bit (0 = least significant) of a 16-bit register
     # engineering value in ``unit`` -> canonical unit: (factor, offset); None when it cannot be
-    # known (an absolute pressure without plant.yaml's ambient pressure)
-    canonical: tuple[float, float] | None = (1.0, 0.0)
+    # known (an absolute pressure without plant.yaml's ambient pressure). Left out, it is
+    # derived from ``unit`` and ``pressure`` (model.units), never assumed to be the identity.
+    canonical: tuple[float, float] | None | str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.canonical == "auto":
+            try:
+                conv = canonical_linear(self.unit, self.pressure)
+            except UnitError:
+                conv = None
+            object.__setattr__(self, "canonical", conv)
 
     @property
     def count(self) -> int:

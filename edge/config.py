@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,8 +31,12 @@ from model.units import (CANONICAL_UNITS, DEFAULT_AMBIENT_BAR, PRESSURE_KINDS, U
                          canonical_linear)
 
 DEFAULT_CONFIG = Path("config/gateway.yaml")
+# Where commands look for gateway.yaml / plant.yaml when --config is not given, in this order:
+# the working directory's config/, the system's /etc/hp-edge, a source checkout's config/ beside
+# the package, and the copy a wheel installs under <prefix>/share/hp-edge/config.
 CONFIG_DIRS = (Path("config"), Path("/etc/hp-edge"),
-               Path(__file__).resolve().parent.parent / "config")
+               Path(__file__).resolve().parent.parent / "config",
+               Path(sys.prefix) / "share" / "hp-edge" / "config")
 __all__ = ["AdvisoryConfig", "AdvisoryField", "ConfigError", "GatewayConfig", "PlcConfig",
            "Reserved", "TagConfig", "load_config", "load_read_config", "find_config",
            "DEFAULT_CONFIG"]

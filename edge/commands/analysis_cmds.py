@@ -14,9 +14,9 @@ import math
 import sys
 import time
 
-from edge.plantfile import DEFAULT_PLANT
-
 DEFAULT_STATE_DIR = "var/state"
+PLANT_HELP = ("plant file (default: config/plant.yaml, else /etc/hp-edge/plant.yaml, else the one "
+              "shipped with the package)")
 
 
 def register(sub) -> None:
@@ -56,7 +56,7 @@ def register(sub) -> None:
                         description="Fit the p_m,sp surrogate (SPEC §6) on optimization results of the "
                                     "model over fouling levels and operating points; prints R^2 on the "
                                     "held-out 30 % and saves the coefficients.")
-    fs.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    fs.add_argument("--config", default=None, help=PLANT_HELP)
     fs.add_argument("--state-dir", default=DEFAULT_STATE_DIR,
                     help=f"state directory; its initial calibration is used when present ({DEFAULT_STATE_DIR})")
     fs.add_argument("--out", default=None, help="coefficients file (default: STATE_DIR/surrogate.json)")
@@ -74,7 +74,7 @@ def register(sub) -> None:
     rp.add_argument("history", help="history CSV (canonical columns, timestamp first)")
     _csv_format(rp)
     rp.add_argument("--out", required=True, help="output directory")
-    rp.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    rp.add_argument("--config", default=None, help=PLANT_HELP)
     rp.add_argument("--initial-window", default=None,
                     help="START/END of the clean initial window (default: the first 90 usable minutes)")
     rp.add_argument("--window-hours", type=float, default=None, help="calibration window length (2 h)")
@@ -96,7 +96,7 @@ def _csv_format(p) -> None:
 def _common(p) -> None:
     p.add_argument("data", help="history CSV (canonical columns, timestamp first)")
     _csv_format(p)
-    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    p.add_argument("--config", default=None, help=PLANT_HELP)
     p.add_argument("--state-dir", default=DEFAULT_STATE_DIR, help=f"state directory ({DEFAULT_STATE_DIR})")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
 
@@ -116,8 +116,9 @@ def _fail(cmd: str, exc: Exception) -> int:
 
 
 def _params(path):
+    from edge.config import find_config
     from edge.plantfile import load_plant
-    return load_plant(path)
+    return load_plant(find_config("plant.yaml", path))
 
 
 def parse_window(text: str):

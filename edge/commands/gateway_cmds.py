@@ -5,9 +5,11 @@ Heavy imports (pymodbus via edge.plc) happen inside the command functions.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
-from edge.config import DEFAULT_CONFIG
+CONFIG_HELP = ("gateway.yaml (default: config/gateway.yaml, else /etc/hp-edge/gateway.yaml, else "
+               "the one shipped with the package)")
 
 # What each status bit means (SPEC 7.3); docs/registers.md is rendered from the YAML plus this.
 STATUS_BIT_NOTES = {   # what edge/loop.py does, word for word (the HMI map is generated from it)
@@ -29,7 +31,7 @@ def register(sub) -> None:
     p = sub.add_parser("check-config", help="validate the configuration and print the layout",
                        description="Validate gateway.yaml, tags.yaml and plant.yaml without "
                        "touching the network; print tags, planned reads and the advisory block.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--markdown", action="store_true",
                    help="print the register map as Markdown (the source of docs/registers.md)")
     p.set_defaults(func=cmd_check_config)
@@ -37,7 +39,7 @@ def register(sub) -> None:
     p = sub.add_parser("read", help="read the advisory block once, as the HMI sees it",
                        description="Connect to any Modbus TCP server, read the advisory block "
                        "once and print it decoded (status bits by name).")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--host", help="override plc.host")
     p.add_argument("--port", type=int, help="override plc.port")
     p.add_argument("--device-id", type=int, help="override plc.device_id")
@@ -52,11 +54,11 @@ def register(sub) -> None:
 def load_config_or_report(path, load_plant: bool = True):
     """The validated configuration, or None after printing every problem (file, tag, key) to
     stderr; callers then exit with code 2 before touching the network."""
-    from edge.config import ConfigError, load_config
+    from edge.config import ConfigError, find_config, load_config
     from edge.yamlfile import format_problems
 
     try:
-        return load_config(path, load_plant=load_plant)
+        return load_config(find_config("gateway.yaml", path), load_plant=load_plant)
     except ConfigError as exc:
         for line in format_problems(exc.problems):
             print(line, file=sys.stderr)
@@ -270,31 +272,52 @@ def render_markdown(cfg) -> str:
 
 
 def cmd_read(args: argparse.Namespace) -> int:
+    """Only gateway.yaml's advisory layout (and its plc section, unless --host and --port name
+    the server) is read: no tags.yaml, no plant.yaml."""
     import asyncio
+    import dataclasses
     import logging
 
-    cfg = load_config_or_report(args.config, load_plant=False)
-    if cfg is None:
+    from edge.config import ConfigError, PlcConfig, find_config, load_read_config
+    from edge.yamlfile import format_problems
+
+    path = find_config("gateway.yaml", args.config)
+    try:
+        plc, adv = load_read_config(path)
+    except ConfigError as exc:
+        for line in format_problems(exc.problems):
+            print(line, file=sys.stderr)
         return 2
+    if args.timeout <= 0:
+        print("hp-edge read: --timeout must be > 0", file=sys.stderr)
+        return 2
+    if args.device_id is not None and not 1 <= args.device_id <= 255:
+        print("hp-edge read: --device-id must be 1..255 (0 is the broadcast address)",
+              file=sys.stderr)
+        return 2
+    if plc is None:
+        if args.host is None or args.port is None:
+            print(f"hp-edge read: the plc section of {path} is not valid; name the server with "
+                  "--host and --port", file=sys.stderr)
+            return 2
+        plc = PlcConfig(host=args.host, port=args.port)
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                   ("device_id", args.device_id)) if v is not None}
+    plc = dataclasses.replace(plc, **overrides)
     from edge.plc import quiet_pymodbus_logging
 
     quiet_pymodbus_logging(logging.CRITICAL)  # one attempt, its outcome is reported below
     logging.getLogger("edge.plc").setLevel(logging.ERROR)
-    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
-                                   ("device_id", args.device_id)) if v is not None}
-    if args.timeout <= 0:
-        print("--timeout must be > 0", file=sys.stderr)
-        return 2
-    return asyncio.run(_read(cfg, overrides, args.timeout, args.json))
+    return asyncio.run(_read(plc, adv, args.timeout, args.json))
 
 
-async def _read(cfg, overrides: dict, timeout: float, as_json: bool) -> int:
+async def _read(plc_cfg, adv, timeout: float, as_json: bool) -> int:
     import asyncio
 
     from edge.advisory import decode_advisory
     from edge.plc import PlcClient, PlcError
 
-    plc = PlcClient.from_config(cfg, **overrides)
+    plc = PlcClient(plc_cfg, (), adv, cycle_budget_s=timeout)
     target = f"{plc.plc.host}:{plc.plc.port} device {plc.plc.device_id}"
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
@@ -307,31 +330,29 @@ async def _read(cfg, overrides: dict, timeout: float, as_json: bool) -> int:
         return 1
     finally:
         await plc.close()
-    decoded = decode_advisory(cfg.advisory, words)
-    print(_format_json(cfg, target, words, decoded) if as_json
-          else _format_text(cfg, target, decoded), end="")
+    decoded = decode_advisory(adv, words)
+    print(_format_json(adv, target, words, decoded) if as_json
+          else _format_text(adv, target, decoded), end="")
     return 0
 
 
-def _format_json(cfg, target: str, words: list[int], decoded: dict) -> str:
+def _format_json(adv, target: str, words: list[int], decoded: dict) -> str:
     import json
     import math
 
     def clean(v):
         return None if isinstance(v, float) and not math.isfinite(v) else v
 
-    adv = cfg.advisory
     doc = {"server": target, "register": adv.register, "start": adv.start, "size": adv.size,
            "words": words, "fields": {f.name: clean(decoded[f.name]) for f in adv.fields},
            "status_bits": decoded["status_bits"]}
     return json.dumps(doc, indent=2) + "\n"
 
 
-def _format_text(cfg, target: str, decoded: dict) -> str:
+def _format_text(adv, target: str, decoded: dict) -> str:
     import math
     from datetime import datetime, timezone
 
-    adv = cfg.advisory
     rows = []
     for f in adv.fields:
         v = decoded[f.name]
@@ -364,7 +385,7 @@ def register_run_demo(sub) -> None:
                        "history, calibrate and optimize on the configured cadence and write the "
                        "advisory block once per scan. Exit codes: 0 stopped on request, 2 invalid "
                        "configuration or state (nothing was connected), 1 unexpected error.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--time-source", choices=("wall", "plc"), default="wall",
                    help="time-stamp samples with the wall clock (default) or the PLC's clock "
                    "register plc_clock (plant time, e.g. an accelerated simulator)")
@@ -376,7 +397,7 @@ def register_run_demo(sub) -> None:
                        description="Start the plant simulator on 127.0.0.1 (free port) at 60x "
                        "plant speed and the gateway against it; show the advisory block as the "
                        "HMI reads it, beside the simulator's hidden truth. Ctrl-C stops both.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--minutes", type=float, help="stop by itself after this many wall minutes")
     p.add_argument("--speed", type=float, default=60.0,
                    help="plant seconds per wall second (default: %(default)s)")
@@ -390,14 +411,44 @@ def register_run_demo(sub) -> None:
     p.set_defaults(func=cmd_demo)
 
 
-def _setup_logging(level: str) -> None:
-    import logging
+JOURNAL_PRIORITY = {"CRITICAL": 2, "ERROR": 3, "WARNING": 4, "INFO": 6, "DEBUG": 7}
+
+
+def stderr_is_journal(stream=None) -> bool:
+    """True when ``stream`` (default stderr) is the journal's stream socket: systemd sets
+    JOURNAL_STREAM=<device>:<inode> of it for the service's stdout/stderr."""
     import os
 
-    # under systemd, journald adds the time stamp and the unit name
-    fmt = ("%(levelname)s %(name)s: %(message)s" if os.environ.get("JOURNAL_STREAM")
-           else "%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.basicConfig(level=getattr(logging, level), format=fmt, stream=sys.stderr)
+    stream = stream or sys.stderr
+    want = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        dev, ino = (int(x) for x in want.split(":"))
+        st = os.fstat(stream.fileno())
+    except (ValueError, OSError, AttributeError):
+        return False
+    return (st.st_dev, st.st_ino) == (dev, ino)
+
+
+class JournalFormatter(logging.Formatter):
+    """'<4>WARNING edge.plc: ...': journald reads the <N> prefix as the syslog priority
+    (SyslogLevelPrefix=, on by default), so `journalctl -p warning` finds the warnings."""
+
+    def format(self, record) -> str:
+        prio = JOURNAL_PRIORITY.get(record.levelname, 6)
+        return "\n".join(f"<{prio}>{line}" for line in super().format(record).splitlines())
+
+
+def _setup_logging(level: str, stream=None) -> None:
+    import logging
+
+    stream = stream or sys.stderr
+    handler = logging.StreamHandler(stream)
+    if stderr_is_journal(stream):
+        # journald adds the time stamp and the unit name; the prefix carries the priority
+        handler.setFormatter(JournalFormatter("%(levelname)s %(name)s: %(message)s"))
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=getattr(logging, level), handlers=[handler])
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # edge.plc reports PLC problems
 
 
@@ -441,7 +492,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from edge.service import StartupError
 
     try:
-        return asyncio.run(run_demo(Path(args.config), args.minutes, args.speed,
+        from edge.config import find_config
+        return asyncio.run(run_demo(find_config("gateway.yaml", args.config), args.minutes,
+                                    args.speed,
                                     Path(args.state_dir) if args.state_dir else None,
                                     args.refresh, commissioning=not args.no_commissioning))
     except (StartupError, CommissioningError) as exc:

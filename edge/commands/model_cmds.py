@@ -5,7 +5,8 @@ import argparse
 import json
 import sys
 
-from edge.plantfile import DEFAULT_PLANT
+PLANT_HELP = ("plant file (default: config/plant.yaml, else /etc/hp-edge/plant.yaml, else the one "
+              "shipped with the package)")
 
 
 def finite(text: str) -> float:
@@ -31,7 +32,7 @@ def register(sub) -> None:
     p.add_argument("--p-m-sp", type=finite, default=16.0, help="intermediate-pressure set point [bar(g)] (16)")
     p.add_argument("--R-th-f", type=finite, default=None, help="evaporator fouling resistance [K/kW]")
     p.add_argument("--CF-dp-f", type=finite, default=None, help="fouling pressure-drop factor [-]")
-    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    p.add_argument("--config", default=None, help=PLANT_HELP)
     p.add_argument("--backend", choices=("HEOS", "BICUBIC&HEOS"), default=None,
                    help="property backend (default: the plant file's)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -39,7 +40,7 @@ def register(sub) -> None:
 
     b = sub.add_parser("bench", help="measure speed and accuracy targets, print JSON",
                        description="Benchmarks of every part; prints one JSON document.")
-    b.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    b.add_argument("--config", default=None, help=PLANT_HELP)
     b.add_argument("--only", default="model,simulator,analysis,gateway",
                    help="comma-separated sections (model,simulator,analysis,gateway)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
@@ -54,15 +55,16 @@ def register(sub) -> None:
     f.add_argument("table", help="manufacturer table (CSV)")
     f.add_argument("--stage", choices=("LS", "HS"), default="LS",
                    help="which compressor's swept volume and nominal speed to use (LS)")
-    f.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    f.add_argument("--config", default=None, help=PLANT_HELP)
     f.add_argument("--out", default=None, help="write the coefficients (YAML) to this file")
     f.set_defaults(func=cmd_fit_compressor)
 
 
 def _params(args):
+    from edge.config import find_config
     from edge.plantfile import PlantFileError, load_plant
     try:
-        return load_plant(args.config, getattr(args, "backend", None))
+        return load_plant(find_config("plant.yaml", args.config), getattr(args, "backend", None))
     except PlantFileError as exc:
         from edge.yamlfile import format_problems
         for line in format_problems(str(exc).splitlines()):

@@ -43,13 +43,22 @@ def _fail(msg: str) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from simulator.config import SimConfigError, load_simulator_config
+    from simulator.config import SimConfigError, load_simulator_config, read_tags
     from simulator.faults import parse_cli_fault
     try:
         cfg = load_simulator_config(args.config)
         if args.seed is not None:
             cfg = cfg.replace(seed=args.seed)
         faults = [parse_cli_fault(f) for f in args.fault]
+        served = read_tags(cfg.tags_file)
+        for text, f in zip(args.fault, faults):
+            if f.tag is not None and f.tag not in served:
+                import difflib
+                close = difflib.get_close_matches(f.tag, list(served), 1)
+                raise SimConfigError(
+                    f"--fault {text}: unknown tag {f.tag!r}"
+                    + (f" (did you mean {close[0]!r}?)" if close else "")
+                    + f"; the simulator serves {', '.join(served)}")
     except SimConfigError as exc:
         return _fail(str(exc))
     if args.export:
@@ -62,7 +71,12 @@ def cmd_simulate(args) -> int:
         if not args.start_fouled:
             cfg = cfg.replace(fouling=dataclasses.replace(
                 cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
-        res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
+        try:
+            res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
+        except SimConfigError as exc:
+            return _fail(str(exc))
+        except OSError as exc:
+            return _fail(f"cannot write {args.export}: {exc.strerror or exc}")
         print(json.dumps({"history": args.export, "truth": args.truth, "rows": res.rows,
                           "days": args.days, "seed": cfg.seed, "seconds": round(res.seconds, 2)}))
         return 0
@@ -97,8 +111,11 @@ async def _serve(cfg, args, faults) -> int:
             return _fail(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}")
         except RuntimeError as exc:
             return _fail(str(exc))
-        for f in faults:
-            sim.add_fault(f)
+        try:
+            for f in faults:
+                sim.add_fault(f)
+        except SimConfigError as exc:
+            return _fail(str(exc))
         print(json.dumps({"listening": f"{args.host}:{sim.port}", "speed": sim.speed, "seed": cfg.seed,
                           "start_time": cfg.start_time, "device_id": cfg.device_id,
                           "truth_log": args.truth_log,

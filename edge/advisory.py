@@ -73,9 +73,9 @@ def parse_advisory(sec) -> AdvisoryConfig | None:
     problem is recorded on ``sec``. None when invalid."""
     if not sec.mapping():
         return None
+    n0 = sec.count()   # a missing required key invalidates it too
     sec.keys(_ADV_KEYS, required=("register", "start", "size", "byte_order", "fields",
                                   "status_bits"))
-    n0 = sec.count()
     register = sec.choice("register", REGISTER_SPACES)
     if register == "input":
         sec.problem("register", "'input' registers cannot be written; the block must be holding")
@@ -109,8 +109,8 @@ def _fields(sec, size: int | None) -> tuple[AdvisoryField, ...]:
             continue
         if not fsec.mapping():
             continue
+        n0 = fsec.count()   # a missing required key invalidates it too
         fsec.keys(_FIELD_KEYS, required=("offset", "type"))
-        n0 = fsec.count()
         offset = fsec.integer("offset", lo=0)
         type_ = fsec.choice("type", TYPES)
         unit = fsec.string("unit", default="")

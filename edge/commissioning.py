@@ -46,7 +46,8 @@ class CommissioningLimits:
                              f"{', '.join(DEFAULT_LIMITS)})")
         kw = {}
         for key, v in node.items():
-            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+            ok = not isinstance(v, bool) and isinstance(v, (int, float)) \
+                and (isinstance(v, float) or abs(v) < 2**1023) and math.isfinite(v)
             if key == "max_parameters_at_bound":
                 ok = ok and isinstance(v, int) and v >= 0
             elif key == "max_objective_pct":

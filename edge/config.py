@@ -289,8 +289,8 @@ _PLC_KEYS = ("host", "port", "device_id", "timeout_s", "reconnect_min_s", "recon
 def _plc(sec: Section) -> PlcConfig | None:
     if not sec.mapping():
         return None
+    n0 = sec.count()   # a missing required key invalidates it too
     sec.keys(_PLC_KEYS, required=("host", "port"))
-    n0 = sec.count()
     kw = dict(
         host=sec.string("host"),
         port=sec.integer("port", lo=1, hi=65535),
@@ -387,8 +387,8 @@ def _reserved(top: Section) -> tuple[Reserved, ...]:
         sec = top.child(f"reserved[{i}]", item)
         if not sec.mapping():
             continue
+        n0 = sec.count()   # a missing required key invalidates it too
         sec.keys(("register", "first", "last", "note"), required=("register", "first", "last"))
-        n0 = sec.count()
         register = sec.choice("register", REGISTER_SPACES)
         first = sec.integer("first", lo=0, hi=65535)
         last = sec.integer("last", lo=0, hi=65535)
@@ -448,8 +448,8 @@ def _tag(sec: Section, name: str, ambient: float | None) -> tuple[TagConfig | No
     the overlap check, known whenever register, address and type are valid."""
     if not sec.mapping():
         return None, None
+    n0 = sec.count()   # a missing required key invalidates it too
     sec.keys(_TAG_KEYS, required=_TAG_REQUIRED)
-    n0 = sec.count()
     register = sec.choice("register", REGISTER_SPACES)
     type_ = sec.choice("type", tuple(TYPES) + (BOOL,))
     bits = register in BIT_SPACES

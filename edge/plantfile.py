@@ -104,7 +104,8 @@ def _value_problems(d: dict) -> list[str]:
     for check in checks:
         try:
             check()
-        except (CalibrationError, ReplayError, SurrogateError, ValueError, TypeError) as exc:
+        except (CalibrationError, ReplayError, SurrogateError, ValueError, TypeError,
+                OverflowError) as exc:
             out.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
     return out
 

@@ -184,8 +184,9 @@ def spec_from_config(extra: dict, kind: str) -> CalibrationSpec:
             raise CalibrationError(f"key '{base}.{k}': unknown (known: {', '.join(sorted(known))})")
 
     def number(v, path, lo=None):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise CalibrationError(f"key '{path}': expected a number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or \
+                not (isinstance(v, float) or abs(v) < 2**1023) or not math.isfinite(v):
+            raise CalibrationError(f"key '{path}': expected a number, got {repr(v)[:60]}")
         if lo is not None and v < lo:
             raise CalibrationError(f"key '{path}': must be >= {lo}, got {v!r}")
         return float(v)

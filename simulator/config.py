@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from edge.yamlfile import YamlFileError, key_line, load_yaml_or_raise
+from edge.yamlfile import YamlFileError, fmt_value, key_line, load_yaml_or_raise
 from model.units import CANONICAL_UNITS
 
 REPO_CONFIG = Path(__file__).resolve().parent.parent / "config"
@@ -75,7 +75,7 @@ def read_tags(path: str | Path) -> dict[str, TagSpec]:
         if unit not in CANONICAL_UNITS.values() or t.get("pressure") == "absolute":
             raise SimConfigError(f"{where}: key 'unit': the simulator serves values in the "
                                  f"canonical units ({', '.join(CANONICAL_UNITS.values())}, "
-                                 f"pressures gauge), not {unit!r}"
+                                 f"pressures gauge), not {fmt_value(unit)}"
                                  + (" absolute" if t.get("pressure") == "absolute" else ""))
         for key in ("register", "address", "type"):
             if key not in t:
@@ -414,8 +414,13 @@ def _at(where: str, data, key) -> str:
 
 
 def _number(v, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise SimConfigError(f"{where} must be a finite number, got {v!r}")
+    ok = not isinstance(v, bool) and isinstance(v, (int, float))
+    try:
+        ok = ok and math.isfinite(float(v))
+    except OverflowError:       # an integer too large for a float
+        ok = False
+    if not ok:
+        raise SimConfigError(f"{where} must be a finite number, got {fmt_value(v)}")
     return float(v)
 
 
@@ -437,6 +442,8 @@ def _dataclass_from(cls, d, where: str, required: tuple = ()):
                 raise SimConfigError(f"{where}: key '{key}' must be a list of {len(default)} numbers")
             kw[key] = tuple(_number(x, f"{where}: key '{key}'") for x in v)
         elif isinstance(default, float) or (default is None and key not in ("tag", "kind")):
+            if v is None and default is not None:    # only optional values may be left empty
+                raise SimConfigError(f"{where}: key '{key}' must be a finite number, got null")
             kw[key] = None if v is None else _number(v, f"{where}: key '{key}'")
         else:
             kw[key] = v if v is None else str(v)

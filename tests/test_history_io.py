@@ -176,3 +176,13 @@ def test_commissioning_limits_are_configurable_and_checked():
         "max_parameters_at_bound 0",
         "clean pressure-drop fit R^2 0.16 is below min_dp_clean_r2 0.5 (flow and pressure "
         "columns do not explain each other)"]
+
+
+def test_rows_with_the_wrong_number_of_fields_are_skipped_and_named(tmp_path):
+    path = tmp_path / "ragged.csv"
+    path.write_text("timestamp,a,b\n2024-03-01T00:00Z,1,2\n2024-03-01T00:01Z,1,2,3\n"
+                    "2024-03-01T00:02Z,4\n\n2024-03-01T00:03Z,5,6\n")
+    h = read_history(path, required=())
+    assert h.frame["a"].tolist() == [1.0, 5.0] and h.frame["b"].tolist() == [2.0, 6.0]
+    assert h.skipped == {"wrong number of fields": 2}
+    assert h.report_lines(path)[1] == "  rows skipped: wrong number of fields: 2 (first at line 3)"

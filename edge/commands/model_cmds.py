@@ -41,8 +41,8 @@ def register(sub) -> None:
     b = sub.add_parser("bench", help="measure speed and accuracy targets, print JSON",
                        description="Benchmarks of every part; prints one JSON document.")
     b.add_argument("--config", default=None, help=PLANT_HELP)
-    b.add_argument("--only", default="model,simulator,analysis,gateway",
-                   help="comma-separated sections (model,simulator,analysis,gateway)")
+    b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
+                   help="comma-separated sections (model,simulator,analysis,gateway,inputs)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -139,7 +139,8 @@ def cmd_bench(args) -> int:
     sections = [s.strip() for s in args.only.split(",") if s.strip()]
     known = {"model": ("model.bench", "bench_model"), "simulator": ("simulator.bench", "bench_simulator"),
              "analysis": ("model.bench_analysis", "bench_analysis"),
-             "gateway": ("edge.bench_gateway", "bench_gateway")}
+             "gateway": ("edge.bench_gateway", "bench_gateway"),
+             "inputs": ("edge.bench_inputs", "bench_inputs")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",

@@ -38,7 +38,9 @@ def register(sub) -> None:
 
 
 def _fail(msg: str) -> int:
-    print(f"hp-edge simulate: {msg}", file=sys.stderr)
+    from edge.yamlfile import format_problems
+    for line in format_problems(msg.splitlines() or [msg]):
+        print(f"hp-edge simulate: {line}", file=sys.stderr)
     return 2
 
 

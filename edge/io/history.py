@@ -38,6 +38,7 @@ class History:
     decimal: str
     first_bad_timestamp: str | None = None           # "line 5: '2024-13-01'"
     first_non_numeric: dict[str, str] = field(default_factory=dict)   # column -> "line 7: 'x'"
+    first_ragged: str | None = None    # "line 9": first row with the wrong number of fields
 
     def report_lines(self, path) -> list[str]:
         """What was read, for the user (the lines ``hp-edge calibrate`` and ``replay`` print)."""
@@ -50,6 +51,8 @@ class History:
                 text = f"{k}: {v}"
                 if k == "bad timestamp" and self.first_bad_timestamp:
                     text += f" (first at {self.first_bad_timestamp}; expected {TIMESTAMP_FORMAT})"
+                if k == "wrong number of fields" and self.first_ragged:
+                    text += f" (first at {self.first_ragged})"
                 parts.append(text)
             out.append("  rows skipped: " + ", ".join(parts))
         if self.non_numeric:
@@ -127,6 +130,7 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
                  required: tuple[str, ...] | None = None) -> History:
     """Read a history CSV (see the module docstring). ``required``: columns that must be there
     (default: the model's, model.columns.REQUIRED). Raises HistoryError."""
+    import numpy as np
     import pandas as pd
 
     from model.columns import REQUIRED
@@ -141,29 +145,45 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
         sep, decimal, header_at = detect_format(text, sep, decimal)
     except HistoryError as exc:
         raise HistoryError(f"{path}: {exc}") from None
+    # rows are split by the csv module, so that each keeps its line number and a row with more
+    # or fewer fields than the header (shifted or cut: which value belongs to which column is
+    # unknown) is skipped and named instead of being padded or refused wholesale
+    reader = csv.reader(io.StringIO(text), delimiter=sep)
+    names: list[str] | None = None
+    rows, lines, ragged = [], [], []
     try:
-        df = pd.read_csv(io.StringIO(text), sep=sep, dtype=str, keep_default_na=False,
-                         skiprows=header_at, skip_blank_lines=False, quoting=csv.QUOTE_MINIMAL,
-                         engine="c")
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError) as exc:
-        raise HistoryError(f"{path}: cannot read as CSV: {str(exc).splitlines()[0][:200]}") from None
-    df = df.fillna("")
-    df.columns = [str(c).strip() for c in df.columns]
-    if "timestamp" not in df.columns:
+        for row in reader:
+            if not any(c.strip() for c in row):
+                continue
+            if names is None:
+                names = [c.strip() for c in row]
+                continue
+            if len(row) == len(names):
+                rows.append(row)
+                lines.append(reader.line_num)
+            else:
+                ragged.append(reader.line_num)
+    except csv.Error as exc:
+        raise HistoryError(f"{path}: line {reader.line_num}: cannot read as CSV: "
+                           f"{str(exc)[:200]}") from None
+    names = names or []
+    if "timestamp" not in names:
         raise HistoryError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
-    names = [f.strip() for f in next(csv.reader([text.splitlines()[header_at]], delimiter=sep))]
-    dup = sorted({c for c in names if names.count(c) > 1})   # pandas would rename them a.1
+    dup = sorted({c for c in names if names.count(c) > 1})
     if dup:
         raise HistoryError(f"{path}: column(s) {', '.join(dup)} appear more than once")
     required = REQUIRED if required is None else required
-    missing = [c for c in required if c not in df.columns]
+    missing = [c for c in required if c not in names]
     if missing:   # without any of these every row would be unusable: say which, up front
         raise HistoryError(f"{path}: missing column(s) {', '.join(missing)} "
                            "(canonical history columns, SPEC §4)")
-    line_of = header_at + 2 + df.index.to_numpy()     # 1-based file line of each row
-    blank = (df.apply(lambda c: c.str.strip()) == "").all(axis=1).to_numpy()
-    df, line_of = df.loc[~blank].copy(), line_of[~blank]
+    df = pd.DataFrame(rows, columns=names, dtype=str)
+    line_of = np.asarray(lines, dtype=int)
     skipped: dict[str, int] = {}
+    first_ragged = None
+    if ragged:
+        skipped["wrong number of fields"] = len(ragged)
+        first_ragged = f"line {ragged[0]}"
     text_ts = df["timestamp"].str.strip()
     ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601")
     bad = ts.isna().to_numpy()
@@ -201,7 +221,8 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
             i = int(nn.argmax())
             first_nn[c] = f"line {line_of[i]}: {_short(cells.iloc[i])}"
         df[c] = num
-    return History(df.reset_index(drop=True), skipped, non_numeric, sep, decimal, first_bad, first_nn)
+    return History(df.reset_index(drop=True), skipped, non_numeric, sep, decimal, first_bad,
+                   first_nn, first_ragged)
 
 
 def read_history_csv(path, sep: str | None = None, decimal: str | None = None):

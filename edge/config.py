@@ -209,7 +209,7 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
     plant_path = top.path("plant_file", base, must_exist=load_plant)
     plant = None
     ambient = None
-    if load_plant and plant_path is not None and plant_path.exists():
+    if load_plant and plant_path is not None and _exists(plant_path):
         from edge.plantfile import check_plant
 
         plant = check_plant(p, plant_path, _display(plant_path))
@@ -247,6 +247,13 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         min_window_samples=min_samples, life_counter_tag=life_counter, plant=plant,
         reserved=reserved, **cfg_kwargs,
     )
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except OSError:
+        return False
 
 
 def load_read_config(path: str | Path) -> tuple[PlcConfig | None, AdvisoryConfig]:

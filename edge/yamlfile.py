@@ -382,9 +382,13 @@ class Section:
         except (OSError, RuntimeError, ValueError) as exc:
             self.problem(key, f"not a usable path: {exc}")
             return None
-        if must_exist and not resolved.is_file():
-            what = "is not a file" if resolved.exists() else "file not found"
-            self.problem(key, f"{what}: {display_path(resolved)}")
+        try:
+            if must_exist and not resolved.is_file():
+                what = "is not a file" if resolved.exists() else "file not found"
+                self.problem(key, f"{what}: {display_path(resolved)}")
+                return None
+        except OSError as exc:     # e.g. a name too long for the file system
+            self.problem(key, f"not a usable path: {exc.strerror or exc}")
             return None
         return resolved
 

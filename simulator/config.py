@@ -329,6 +329,8 @@ def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
         if key in doc:
             kw[key] = _dataclass_from(cls, doc[key], f"{where}: {key}")
     if "truth" in doc:
+        if not isinstance(doc["truth"] or {}, dict):
+            raise SimConfigError(f"{where}: key 'truth' must be a mapping")
         t = dict(doc["truth"] or {})
         comps = t.pop("compressors", {}) or {}
         truth = _dataclass_from(TruthCfg, t, f"{where}: truth")

@@ -580,3 +580,33 @@ def test_problem_output_is_bounded(cfgdir, capsys, no_network):
     assert len(err) == 52 and err[-2] == "... and 350 more problem(s)"
     assert err[-1] == "400 problem(s); nothing was started."
     assert max(len(ln) for ln in err) <= 300
+
+
+@pytest.mark.parametrize("file, change, expected", [
+    ("gateway.yaml", lambda d: d["advisory"]["fields"]["p_m_gm"].pop("offset"),
+     "config/gateway.yaml: advisory field 'p_m_gm': key 'offset': missing required key"),
+    ("gateway.yaml", lambda d: d["advisory"]["fields"]["p_m_gm"].pop("type"),
+     "config/gateway.yaml: advisory field 'p_m_gm': key 'type': missing required key"),
+    ("gateway.yaml", lambda d: d["advisory"].pop("start"),
+     "config/gateway.yaml: section 'advisory': key 'start': missing required key"),
+    ("gateway.yaml", lambda d: d["advisory"].pop("size"),
+     "config/gateway.yaml: section 'advisory': key 'size': missing required key"),
+    ("tags.yaml", lambda d: d["tags"]["T_c"].pop("max_age_s"),
+     "config/tags.yaml: tag 'T_c': key 'max_age_s': missing required key"),
+    ("gateway.yaml", lambda d: d["plc"].pop("host"),
+     "config/gateway.yaml: section 'plc': key 'host': missing required key"),
+])
+def test_campaign_tracebacks_are_one_line_and_exit_2(cfgdir, capsys, no_network, file, change,
+                                                      expected):
+    """The campaign's 26 tracebacks: a missing key left a half-built object behind."""
+    edit(cfgdir, file, change)
+    assert run_cli("check-config") == 2
+    err = capsys.readouterr().err.splitlines()
+    assert [re.sub(r"^([^:]+): line \d+: ", r"\1: ", ln) for ln in err] == [
+        expected, "1 problem(s); nothing was started."]
+
+
+def test_a_path_too_long_for_the_file_system_is_a_problem(cfgdir):
+    edit(cfgdir, "gateway.yaml", lambda d: d.update(tags_file="y" * 5000))
+    assert problems() == ["config/gateway.yaml: top level: key 'tags_file': not a usable path: "
+                          "File name too long"]

@@ -175,7 +175,7 @@ def test_garbled_frames_are_one_failure_each_and_the_log_stays_short(caplog):
             await plc.close()
             return results, recovered
 
-    with caplog.at_level(logging.DEBUG):
+    with caplog.at_level(logging.DEBUG), caplog.at_level(logging.DEBUG, logger="edge.plc"):
         results, recovered = run(scenario())
     assert {r.comm_error for r in results} == {"protocol error"}
     assert results[0].values["T_sink_in"].ok          # the FC4 group was fine

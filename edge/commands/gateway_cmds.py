@@ -304,11 +304,16 @@ def cmd_read(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
                                    ("device_id", args.device_id)) if v is not None}
     plc = dataclasses.replace(plc, **overrides)
-    from edge.plc import quiet_pymodbus_logging
-
-    quiet_pymodbus_logging(logging.CRITICAL)  # one attempt, its outcome is reported below
-    logging.getLogger("edge.plc").setLevel(logging.ERROR)
-    return asyncio.run(_read(plc, adv, args.timeout, args.json))
+    # one attempt, its outcome is reported below: quiet the PLC loggers meanwhile
+    loggers = [logging.getLogger(n) for n in ("pymodbus", "edge.plc")]
+    saved = [lg.level for lg in loggers]
+    for lg, level in zip(loggers, (logging.CRITICAL, logging.ERROR)):
+        lg.setLevel(level)
+    try:
+        return asyncio.run(_read(plc, adv, args.timeout, args.json))
+    finally:
+        for lg, level in zip(loggers, saved):
+            lg.setLevel(level)
 
 
 async def _read(plc_cfg, adv, timeout: float, as_json: bool) -> int:

@@ -213,3 +213,15 @@ def test_systemd_analyze_security_of_the_unit():
     match = re.search(r"Overall exposure level for hp-edge.service: ([\d.]+) (\w+)", out.stdout)
     assert match, out.stdout + out.stderr
     assert float(match.group(1)) <= 2.0 and match.group(2) == "OK"
+
+
+def test_simulate_checks_plant_yaml_like_every_command(tmp_path, capsys):
+    shutil.copytree(REPO / "config", tmp_path / "config")
+    plant = tmp_path / "config" / "plant.yaml"
+    plant.write_text(plant.read_text().replace("R_th_f_K_per_kW: 0.0", "R_th_f_K_per_kw: 0.0", 1))
+    rc = main(["simulate", "--config", str(tmp_path / "config" / "simulator.yaml"), "--export",
+               str(tmp_path / "h.csv"), "--days", "0.001"])
+    err = capsys.readouterr().err
+    assert rc == 2 and not (tmp_path / "h.csv").exists()
+    assert "section 'calibrated': key 'R_th_f_K_per_kw': unknown key (did you mean " \
+           "'R_th_f_K_per_kW'?)" in err

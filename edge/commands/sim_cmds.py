@@ -44,6 +44,19 @@ def _fail(msg: str) -> int:
     return 2
 
 
+def _check_plant_file(path) -> None:
+    """plant.yaml through the checker every command uses (edge.plantfile): unknown or duplicate
+    keys are refused here too, before the simulated plant is built from the file."""
+    from edge.plantfile import check_plant
+    from edge.yamlfile import Problems
+    from simulator.config import SimConfigError
+
+    p = Problems()
+    check_plant(p, path)
+    if p.lines:
+        raise SimConfigError("\n".join(p.lines))
+
+
 def cmd_simulate(args) -> int:
     from simulator.config import SimConfigError, load_simulator_config, read_tags
     from simulator.faults import parse_cli_fault
@@ -52,6 +65,7 @@ def cmd_simulate(args) -> int:
         if args.seed is not None:
             cfg = cfg.replace(seed=args.seed)
         faults = [parse_cli_fault(f) for f in args.fault]
+        _check_plant_file(cfg.plant_file)     # the same strict check as every other command
         served = read_tags(cfg.tags_file)
         for text, f in zip(args.fault, faults):
             if f.tag is not None and f.tag not in served:

@@ -108,6 +108,7 @@ async def _serve(cfg, args, faults) -> int:
     import asyncio
     import signal
 
+    from simulator.config import SimConfigError
     from simulator.server import PlantSimulator
     sim = PlantSimulator(cfg, host=args.host, port=args.port, speed=args.speed,
                          truth_log=args.truth_log)

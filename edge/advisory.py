@@ -1,8 +1,11 @@
 """The advisory block: its layout (gateway.yaml's ``advisory`` section) and the conversion of
 values and status bits <-> the register words the HMI reads (pure; no pymodbus).
 
-Two fields are mandatory in the layout: ``heartbeat`` and ``status`` (both uint16); every other
-field is filled from ``values``. ``edge.config`` validates the section with ``parse_advisory``.
+Two fields are mandatory in the layout: ``heartbeat`` and ``status`` (both uint16), and so is the
+``status_bits`` table; every other field is filled from ``values``. ``edge.config`` validates the
+section with ``parse_advisory``. The block's register range (holding ``start``..``start+size-1``) is
+the one range the gateway ever writes: ``edge.config`` checks it against every register the PLC
+owns, and ``edge.plc`` refuses any other write before a byte is sent.
 """
 from __future__ import annotations
 
@@ -70,11 +73,15 @@ def parse_advisory(sec) -> AdvisoryConfig | None:
     problem is recorded on ``sec``. None when invalid."""
     if not sec.mapping():
         return None
-    sec.keys(_ADV_KEYS, required=("register", "start", "size", "byte_order", "fields"))
-    n0 = sec.count()
+    n0 = sec.count()   # a missing required key invalidates it too
+    sec.keys(_ADV_KEYS, required=("register", "start", "size", "byte_order", "fields",
+                                  "status_bits"))
     register = sec.choice("register", REGISTER_SPACES)
     if register == "input":
         sec.problem("register", "'input' registers cannot be written; the block must be holding")
+    elif register is not None and register != "holding":
+        sec.problem("register", f"{register!r}: the block is written with FC16; it must be "
+                    "holding registers")
     start = sec.integer("start", lo=0, hi=65535)
     size = sec.integer("size", lo=1, hi=MAX_WRITE_COUNT)
     if start is not None and size is not None and start + size > 65536:
@@ -102,8 +109,8 @@ def _fields(sec, size: int | None) -> tuple[AdvisoryField, ...]:
             continue
         if not fsec.mapping():
             continue
+        n0 = fsec.count()   # a missing required key invalidates it too
         fsec.keys(_FIELD_KEYS, required=("offset", "type"))
-        n0 = fsec.count()
         offset = fsec.integer("offset", lo=0)
         type_ = fsec.choice("type", TYPES)
         unit = fsec.string("unit", default="")
@@ -136,11 +143,12 @@ def _fields(sec, size: int | None) -> tuple[AdvisoryField, ...]:
 
 
 def _status_bits(sec) -> tuple[tuple[int, str], ...]:
-    raw = sec.data.get("status_bits", {})
-    if raw is None:
-        raw = {}
-    if not isinstance(raw, dict):
-        sec.problem("status_bits", "expected a mapping of bit number (0..15) -> name")
+    if "status_bits" not in sec.data:
+        return ()      # reported as a missing required key
+    raw = sec.data["status_bits"]
+    if not isinstance(raw, dict) or not raw:
+        sec.problem("status_bits", "expected a mapping of bit number (0..15) -> name; without "
+                    "it the status word would always read 0")
         return ()
     bits, seen = [], {}
     for bit, name in raw.items():

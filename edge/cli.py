@@ -20,11 +20,22 @@ COMMAND_MODULES = (
 )
 
 
+def version() -> str:
+    """The installed distribution's version (pyproject.toml)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+    try:
+        return dist_version("hp-edge")
+    except PackageNotFoundError:   # running from a source tree that is not installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hp-edge",
         description="Modbus TCP edge gateway with a digital twin of a two-stage ammonia heat pump.",
     )
+    parser.add_argument("--version", action="version", version=f"hp-edge {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:

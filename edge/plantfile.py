@@ -1,30 +1,122 @@
-"""Load config/plant.yaml into model parameters; errors name the file and the key."""
+"""Load and check config/plant.yaml; errors name the file, the key and (for unknown and duplicate
+keys) the line.
+
+plant.yaml is read by the same strict loader as gateway.yaml (``edge.yamlfile``) and checked
+against ``PLANT_SCHEMA``: every key the product reads, at every level. A key that is not in the
+schema is refused (a typo such as ``R_th_f_K_per_kw`` would otherwise be ignored and the default
+used silently). To add a section or a key to plant.yaml, add it to ``PLANT_SCHEMA`` below: that
+is the one place. Values are checked by the code that reads them (``PlantParams.from_dict``,
+the calibration, replay and surrogate settings, the commissioning limits), all called from
+``check_plant``, so every command sees every problem at start.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
+from edge.yamlfile import MapOf, Problems, Section, check_schema, display_path, load_yaml
 
 DEFAULT_PLANT = "config/plant.yaml"
 
 
 class PlantFileError(ValueError):
-    """plant.yaml is missing, not YAML, or invalid; the message starts with the file name."""
+    """plant.yaml is missing, not YAML, or invalid; one line per problem, each starting with the
+    file name."""
+
+
+_COMPRESSOR = dict.fromkeys(("swept_volume_m3_per_h", "nominal_speed_rpm", "speed_min_rpm",
+                             "speed_max_rpm", "eta_is", "eta_vol"))
+_CALIBRATION_KIND = {
+    **dict.fromkeys(("window_minutes", "window_hours", "min_samples", "tolerance",
+                     "correlation_limit", "change_penalty", "use_flagged_rows")),
+    "parameters": MapOf({"start": None, "bounds": None}),
+    "goals": MapOf({"weight": None, "statistic": None}),
+}
+
+# Every key of plant.yaml. None: a value (checked by its reader); a dict: a section; MapOf: a
+# mapping whose keys the user names (calibration parameters, goals).
+PLANT_SCHEMA: dict = {
+    "fluid": None,
+    "property_backend": None,
+    "ambient_pressure_bar": None,
+    "water": dict.fromkeys(("cp_kJ_per_kgK", "rho_kg_per_m3")),
+    "evaporator": dict.fromkeys(("U_W_per_m2K", "A_m2", "superheat_K")),
+    "desuperheater": dict.fromkeys(("U_W_per_m2K", "A_m2")),
+    "condenser": dict.fromkeys(("U_W_per_m2K", "A_m2", "design_pinch_K", "design_pressure_bar_a")),
+    "subcooler": dict.fromkeys(("U_W_per_m2K", "A_m2")),
+    "compressors": {"LS": _COMPRESSOR, "HS": _COMPRESSOR},
+    "source_pressure_drop": {"dp_clean_coef": None},
+    "calibrated": dict.fromkeys(("CF_DSH", "CF_con", "CF_SC", "CF_eva", "R_th_f_K_per_kW",
+                                 "CF_dp_f")),
+    "calibration": {
+        "initial": {**_CALIBRATION_KIND,
+                    "limits": dict.fromkeys(("max_objective_pct", "max_parameters_at_bound",
+                                             "min_dp_clean_r2"))},
+        "fouling": _CALIBRATION_KIND,
+        "replay": dict.fromkeys(("window_hours", "min_samples", "initial_minutes",
+                                 "cip_off_minutes", "cip_windows", "max_gap_minutes", "optimize",
+                                 "dp_form")),
+    },
+    "surrogate": dict.fromkeys(("reference_p_m_sp_barg", "fouling_levels_K_per_kW",
+                                "points_per_level", "T_source_in_C", "source_cooling_K",
+                                "T_sink_in_C", "V_source_m3h", "V_sink_m3h", "seed")),
+}
+
+
+def check_plant(p: Problems, path: Path, file: str | None = None) -> dict | None:
+    """plant.yaml as a dict when it is valid; every problem is recorded on ``p`` (and None is
+    returned when the file cannot be read at all)."""
+    file = file or display_path(path)
+    data = load_yaml(p, Path(path), file)
+    if data is None:
+        return None
+    top = Section(p, file, "top level", data)
+    if not isinstance(data, dict):
+        top.mapping()
+        return None
+    n0 = len(p.lines)
+    check_schema(top, PLANT_SCHEMA)
+    if len(p.lines) != n0:
+        return data     # values are not checked on a file of the wrong shape
+    for msg in _value_problems(data):
+        p.add(file, None, None, msg)
+    return data
+
+
+def _value_problems(d: dict) -> list[str]:
+    """What the readers of plant.yaml say about its values (one line each)."""
+    from model.params import ParamError, PlantParams
+
+    out: list[str] = []
+    try:
+        params = PlantParams.from_dict(d)
+    except ParamError as exc:
+        return str(exc).splitlines()
+    from edge.commissioning import CommissioningLimits
+    from model.calibration import CalibrationError, spec_from_config
+    from model.replay import ReplayError, ReplaySettings
+    from model.surrogate import SurrogateError, design_from_config
+
+    checks = [lambda: spec_from_config(params.extra, "initial"),
+              lambda: spec_from_config(params.extra, "fouling"),
+              lambda: ReplaySettings.from_config(params.extra),
+              lambda: design_from_config(params.extra),
+              lambda: CommissioningLimits.from_config(params.extra)]
+    for check in checks:
+        try:
+            check()
+        except (CalibrationError, ReplayError, SurrogateError, ValueError, TypeError,
+                OverflowError) as exc:
+            out.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    return out
 
 
 def load_plant_dict(path: str | Path = DEFAULT_PLANT) -> dict:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise PlantFileError(f"{p}: cannot read: {exc.strerror or exc}") from exc
-    try:
-        d = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise PlantFileError(f"{p}: not valid YAML: {exc}") from exc
-    if not isinstance(d, dict):
-        raise PlantFileError(f"{p}: expected a mapping at the top level")
-    return d
+    """plant.yaml as a dict, checked; raises PlantFileError with every problem."""
+    p = Problems()
+    data = check_plant(p, Path(path))
+    if p.lines:
+        raise PlantFileError("\n".join(p.lines))
+    return data
 
 
 def load_plant(path: str | Path = DEFAULT_PLANT, backend: str | None = None):
@@ -36,4 +128,5 @@ def load_plant(path: str | Path = DEFAULT_PLANT, backend: str | None = None):
     try:
         return PlantParams.from_dict(d)
     except ParamError as exc:
-        raise PlantFileError("\n".join(f"{path}: {line}" for line in str(exc).splitlines())) from exc
+        raise PlantFileError("\n".join(f"{display_path(path)}: {line}"
+                                       for line in str(exc).splitlines())) from exc

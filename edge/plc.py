@@ -4,13 +4,25 @@ Two failure channels are kept apart:
 
 * the PLC answered with a Modbus exception reply (``rr.isError()``) -> ``PlcExceptionReply(code)``;
   the connection is fine;
-* no usable answer at all (timeout, connection refused or lost, OSError, garbled frame)
+* no usable answer at all (timeout, connection refused or lost, OSError, a garbled frame, a reply
+  to another function than the one asked, a write echo that does not match the request)
   -> ``PlcCommError(reason)``; the connection is dropped and re-made by the next cycle, with
   exponential back-off (``reconnect_min_s`` doubling up to ``reconnect_max_s``) while it fails.
 
 ``read_all`` never raises for either: every tag comes back as a ``TagValue`` that is good or bad
-with a reason. Writes raise, and go only to the advisory block: ``write_registers`` refuses any
-address outside it before a byte is sent (SPEC 7.3).
+with a reason, its value converted to the canonical unit (degC, bar(g), m3/h, kW, ...). Reads are
+grouped per (device id, register space). A group the PLC refuses with exception 2 (illegal data
+address: typically a read across a register it does not map) is read tag by tag, and the grouped
+read is tried again after ``REGROUP_MIN_S``, doubling up to ``REGROUP_MAX_S`` while it keeps
+failing; this is logged once per group.
+
+Writes raise, and go only to the advisory block: ``write_registers`` refuses any address outside
+it, or overlapping a register the PLC owns (gateway.yaml ``reserved``, any tag), before a byte is
+sent (SPEC 7.3) - so the guard holds even when tags.yaml is incomplete.
+
+Logging: the first failure of a run is a WARNING; while it goes on, one summary line ("still
+failing: N failures in M s") at most every ``SUMMARY_INTERVAL_S``; the recovery once. A garbled
+frame is one failure, never an asyncio traceback.
 """
 from __future__ import annotations
 
@@ -24,9 +36,9 @@ from dataclasses import dataclass, replace
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 
-from edge.codec import (MAX_READ_COUNT, MAX_WRITE_COUNT, ReadRequest, format_number, plan_reads,
-                        raw_value)
-from edge.config import AdvisoryConfig, GatewayConfig, PlcConfig, TagConfig
+from edge.codec import (BIT_SPACES, MAX_READ_BITS, MAX_READ_COUNT, MAX_WRITE_COUNT, READ_FUNCTION,
+                        ReadRequest, bit_of, format_number, plan_groups, raw_value)
+from edge.config import AdvisoryConfig, GatewayConfig, PlcConfig, Reserved, TagConfig
 
 log = logging.getLogger(__name__)
 
@@ -38,12 +50,14 @@ EXCEPTION_NAMES = {
 }
 CYCLE_BUDGET_FRACTION = 0.8  # of the scan interval: one poll cycle never takes longer
 _PYMODBUS_SLACK_S = 1.0      # pymodbus' own timeout is a backstop behind ours
-_FC_READ = {"holding": 3, "input": 4}
+SUMMARY_INTERVAL_S = 300.0   # at most one loud log line per failure run in this time
+REGROUP_MIN_S = 60.0         # a refused grouped read is tried again after this ...
+REGROUP_MAX_S = 3600.0       # ... doubling up to this while it keeps being refused
 
 
 def quiet_pymodbus_logging(level: int = logging.ERROR) -> None:
     """pymodbus logs every failed connect attempt as a warning of its own; PlcClient already
-    reports the first failure loudly and repeats at debug. Commands call this once at start."""
+    reports the first failure loudly and summarises repeats. Commands call this once at start."""
     logging.getLogger("pymodbus").setLevel(level)
 
 
@@ -77,10 +91,10 @@ class WriteOutsideAdvisoryBlock(PlcError):
 @dataclass(frozen=True)
 class TagValue:
     name: str
-    value: float | None        # engineering value; None when bad
+    value: float | None        # value in the canonical unit (degC, bar(g), m3/h, kW, ...); None when bad
     bad: str | None = None     # why the value is bad: 'sentinel', 'nan', 'inf',
     #                            'out of range [lo, hi]', 'modbus exception N', 'timeout', ...
-    words: tuple[int, ...] = ()  # register words as read (empty when not read)
+    words: tuple[int, ...] = ()  # register words (or bits) as read (empty when not read)
     raw: int | float | None = None  # number before scale/offset (when the words were read)
 
     @property
@@ -97,13 +111,21 @@ class ReadResult:
     comm_error: str | None = None  # set when a request got no usable answer (not for exception replies)
 
     def good(self) -> dict[str, float]:
-        """Engineering values of the good tags."""
+        """Values of the good tags, in canonical units."""
         return {n: v.value for n, v in self.values.items() if v.bad is None}
 
 
 def _check_tag(tag: TagConfig, words: list[int]) -> TagValue:
-    raw = raw_value(words, tag.type, tag.byte_order)
-    mark = dict(name=tag.name, words=tuple(words), raw=raw)
+    """Decode, validate in the tag's own unit (range, sentinel, NaN), then convert to the
+    canonical unit."""
+    mark = dict(name=tag.name, words=tuple(words))
+    if tag.register in BIT_SPACES:
+        raw: int | float = int(words[0])
+    elif tag.bit is not None:
+        raw = bit_of(words[0], tag.bit)
+    else:
+        raw = raw_value(words, tag.type, tag.byte_order)
+    mark["raw"] = raw
     if tag.sentinel is not None and raw == tag.sentinel:
         return TagValue(value=None, bad="sentinel", **mark)
     value = float(raw) * tag.scale + tag.offset
@@ -113,16 +135,69 @@ def _check_tag(tag: TagConfig, words: list[int]) -> TagValue:
         return TagValue(value=None, bad="inf", **mark)
     lo, hi = tag.range
     if not lo <= value <= hi:
-        return TagValue(value=None, bad=f"out of range [{format_number(lo)}, {format_number(hi)}]", **mark)
-    return TagValue(value=value, **mark)
+        return TagValue(value=None, bad=f"out of range [{format_number(lo)}, {format_number(hi)}]",
+                        **mark)
+    if tag.canonical is None:
+        return TagValue(value=None, bad="no ambient pressure to convert an absolute pressure "
+                        "(plant.yaml not loaded)", **mark)
+    return TagValue(value=tag.to_canonical(value), **mark)
+
+
+class FailureLog:
+    """Logging policy of a run of failures: the first one loud, then at most one summary line
+    per ``interval_s`` ("still failing: N failures in M s"), the recovery once. Failures that
+    are not shown loudly go to debug and are counted in the next loud line."""
+
+    def __init__(self, logger: logging.Logger, prefix: str, clock: Callable[[], float],
+                 interval_s: float = SUMMARY_INTERVAL_S) -> None:
+        self.log, self.prefix, self.clock, self.interval_s = logger, prefix, clock, interval_s
+        self.failing = False
+        self.run_start = 0.0
+        self.run_failures = 0
+        self.run_loud = False
+        self.last_loud = -math.inf
+        self.quiet = 0           # failures logged at debug since the last loud line
+
+    def failed(self, message: str) -> None:
+        now = self.clock()
+        if not self.failing:
+            self.failing, self.run_start, self.run_failures, self.run_loud = True, now, 0, False
+        self.run_failures += 1
+        if now - self.last_loud < self.interval_s:
+            self.quiet += 1
+            self.log.debug("%s: %s", self.prefix, message)
+            return
+        if self.run_failures == 1:
+            extra = (f" ({self.quiet} more failure(s) in the last {now - self.last_loud:.0f} s "
+                     "not shown)" if self.quiet else "")
+            self.log.warning("%s: %s%s (repeats are summarised at most every %g s)",
+                             self.prefix, message, extra, self.interval_s)
+        else:
+            self.log.warning("%s: still failing: %d failures in %.0f s; last: %s", self.prefix,
+                             self.run_failures, now - self.run_start, message)
+        self.last_loud, self.quiet, self.run_loud = now, 0, True
+
+    def ok(self) -> None:
+        if not self.failing:
+            return
+        self.failing = False
+        how = (f"answering again after {self.run_failures} failure(s) in "
+               f"{self.clock() - self.run_start:.0f} s")
+        (self.log.warning if self.run_loud else self.log.debug)("%s: %s", self.prefix, how)
+
+
+@dataclass
+class _Split:
+    """A group read tag by tag after exception 2, and when to try the grouped read again."""
+    retry_at: float
+    backoff_s: float
 
 
 class PlcClient:
     """Reads the tags of the PLC in grouped requests and writes the advisory block.
 
     The connection is made by ``connect()`` or lazily by ``read_all()``; after a failure the next
-    attempt waits ``reconnect_min_s``, doubling up to ``reconnect_max_s``. The first failure of a
-    run of failures is logged as a warning, the repeats at debug until the next success.
+    attempt waits ``reconnect_min_s``, doubling up to ``reconnect_max_s``.
     """
 
     def __init__(
@@ -132,33 +207,36 @@ class PlcClient:
         advisory: AdvisoryConfig,
         *,
         cycle_budget_s: float,
-        max_gap: int = 10,
+        max_gap: int | None = None,
         clock: Callable[[], float] = time.monotonic,
+        reserved: Sequence[Reserved] = (),
+        summary_interval_s: float = SUMMARY_INTERVAL_S,
     ) -> None:
         if cycle_budget_s <= 0:
             raise ValueError(f"cycle_budget_s must be > 0, got {cycle_budget_s}")
         self.plc, self.tags, self.advisory = plc, tuple(tags), advisory
+        self.reserved = tuple(reserved)
         self.cycle_budget_s = cycle_budget_s
         self._clock = clock
-        self.plan: list[tuple[str, ReadRequest]] = [
-            (space, req)
-            for space in ("input", "holding")
-            if (in_space := [t for t in self.tags if t.register == space])
-            for req in plan_reads(in_space, max_gap=max_gap)
-        ]
-        self._per_tag: set[tuple[str, int]] = set()  # groups read tag by tag after exception 2
+        gap = plc.max_read_gap if max_gap is None else max_gap
+        # (device id, register space, request), devices in order, spaces input, holding, bits
+        self.plan: list[tuple[int, str, ReadRequest]] = plan_groups(self.tags, plc.device_id, gap)
+        self._split: dict[tuple[int, str, int], _Split] = {}
         self._client: AsyncModbusTcpClient | None = None
         self._lost: asyncio.Event | None = None
+        self._malformed: str | None = None    # why the connection was dropped mid-frame
         self._failures = 0              # consecutive failed connect attempts
         self._next_attempt = -math.inf  # clock time before which no connect is attempted
-        self._failing = False           # in a run of failures (logging policy)
         self._last_error = "not connected"
+        self._connected_once = False
+        self._last_request = -math.inf  # event-loop time of the last request (pauses)
+        self.failures = FailureLog(log, f"PLC {plc.host}:{plc.port}", clock, summary_interval_s)
 
     @classmethod
     def from_config(cls, cfg: GatewayConfig, **overrides) -> PlcClient:
         """Client for ``cfg``; ``overrides`` replace PlcConfig fields (host, port, device_id...)."""
         plc = replace(cfg.plc, **overrides) if overrides else cfg.plc
-        return cls(plc, cfg.tags, cfg.advisory,
+        return cls(plc, cfg.tags, cfg.advisory, reserved=cfg.reserved,
                    cycle_budget_s=CYCLE_BUDGET_FRACTION * cfg.scan_interval_s)
 
     # ------------------------------------------------------------------ connection handling
@@ -173,6 +251,11 @@ class PlcClient:
         """Seconds until the next connect attempt is allowed (0 when allowed now)."""
         return max(0.0, self._next_attempt - self._clock())
 
+    @property
+    def split_groups(self) -> list[tuple[int, str, int]]:
+        """(device, space, start) of the groups currently read tag by tag."""
+        return sorted(self._split)
+
     async def connect(self, timeout: float | None = None) -> None:
         """One connect attempt now. Raises PlcCommError('connect failed') and schedules the
         next attempt with back-off."""
@@ -185,11 +268,14 @@ class PlcClient:
             reconnect_delay=0,  # reconnecting is ours (back-off, logging)
             trace_connect=lambda up: None if up else lost.set(),
         )
+        self._guard_frames(client, lost)
         try:
             ok = await asyncio.wait_for(client.connect(), timeout)
             why = "refused or unreachable"
         except asyncio.TimeoutError:
             ok, why = False, f"no answer within {timeout:g} s"
+        except (OSError, ModbusException) as exc:
+            ok, why = False, str(exc) or type(exc).__name__
         if not ok:
             client.close()
             self._failures += 1
@@ -198,13 +284,36 @@ class PlcClient:
             self._next_attempt = self._clock() + delay
             err = PlcCommError("connect failed", f"{self.plc.host}:{self.plc.port} {why}")
             self._last_error = err.reason
-            self._failed(f"{err}; next attempt in {delay:g} s")
+            self.failures.failed(f"{err}; next attempt in {delay:g} s")
             raise err
-        self._client, self._lost = client, lost
+        self._client, self._lost, self._malformed = client, lost, None
         self._failures, self._next_attempt = 0, -math.inf
-        # recovery is declared when the PLC answers, not when TCP connects (see _execute)
-        (log.debug if self._failing else log.info)(
+        # recovery is declared when the PLC answers, not when TCP connects
+        (log.debug if self._connected_once or self.failures.failing else log.info)(
             "PLC %s:%s: connected", self.plc.host, self.plc.port)
+        self._connected_once = True
+
+    def _guard_frames(self, client: AsyncModbusTcpClient, lost: asyncio.Event) -> None:
+        """A frame pymodbus cannot decode raises inside the transport's data_received, which
+        asyncio reports with a traceback and a closed transport. Catch it here instead: drop the
+        connection, remember why; the waiting request ends as a protocol error."""
+        ctx = getattr(client, "ctx", None)
+        original = getattr(ctx, "callback_data", None)
+        if original is None:   # pragma: no cover - pymodbus layout changed (pinned <3.17)
+            return
+
+        def guarded(data: bytes, addr=None) -> int:
+            try:
+                return original(data, addr)
+            except Exception as exc:  # noqa: BLE001 - any decoder failure is a garbled frame
+                self._malformed = f"malformed reply ({exc})"
+                lost.set()
+                transport = getattr(ctx, "transport", None)
+                if transport is not None:
+                    transport.close()
+                return len(data)
+
+        ctx.callback_data = guarded
 
     async def ensure_connected(self, timeout: float | None = None) -> bool:
         """True when connected, connecting first if the back-off allows it."""
@@ -239,23 +348,26 @@ class PlcClient:
         self._drop()
         self._last_error = reason
         self._next_attempt = -math.inf
-        self._failed(f"{reason}: {detail}")
+        self.failures.failed(f"{reason}: {detail}")
 
-    def _failed(self, message: str) -> None:
-        if self._failing:
-            log.debug("PLC %s:%s: %s", self.plc.host, self.plc.port, message)
-        else:
-            log.warning("PLC %s:%s: %s (repeats are logged at debug level until it recovers)",
-                        self.plc.host, self.plc.port, message)
-            self._failing = True
+    async def _pause(self) -> None:
+        pause = self.plc.pause_between_requests_s
+        if pause > 0:
+            loop = asyncio.get_running_loop()
+            wait = self._last_request + pause - loop.time()
+            if wait > 0:
+                await asyncio.sleep(wait)
 
     async def _execute(self, call: Callable[[AsyncModbusTcpClient], Awaitable],
                        timeout: float, fc: int, address: int, count: int):
-        """Run one request; map every outcome to a reply, PlcExceptionReply or PlcCommError."""
+        """Run one request; map every outcome to a reply of function ``fc``, PlcExceptionReply
+        or PlcCommError."""
         if not self.connected:
             if self._client is not None:
                 self._lose("connection lost", "the PLC closed the connection")
             raise PlcCommError("not connected")
+        await self._pause()
+        self._last_request = asyncio.get_running_loop().time()
         request = asyncio.ensure_future(call(self._client))
         lost = asyncio.ensure_future(self._lost.wait())
         try:
@@ -267,6 +379,10 @@ class PlcClient:
             await asyncio.gather(request, lost, return_exceptions=True)
         where = f"function {fc} at {address}..{address + count - 1}"
         if request not in done:
+            if lost in done and self._malformed:
+                detail = f"{where}: {self._malformed}"
+                self._lose("protocol error", detail)
+                raise PlcCommError("protocol error", detail)
             reason = "connection lost" if lost in done else "timeout"
             detail = f"{where}: no reply within {timeout:.3g} s" if reason == "timeout" else where
             self._lose(reason, detail)
@@ -279,29 +395,46 @@ class PlcClient:
         except (ModbusException, asyncio.TimeoutError) as exc:
             self._lose("protocol error", f"{where}: {exc}")
             raise PlcCommError("protocol error", f"{where}: {exc}") from exc
-        if self._failing:  # any answer, an exception reply too, ends a run of failures
-            log.warning("PLC %s:%s: answering again", self.plc.host, self.plc.port)
-            self._failing = False
+        got = getattr(reply, "function_code", None)
         if reply.isError():
+            if got != fc | 0x80:
+                detail = f"{where}: exception reply for function {_fc(got, 0x7F)}"
+                self._lose("protocol error", detail)
+                raise PlcCommError("protocol error", detail)
             raise PlcExceptionReply(getattr(reply, "exception_code", 0), fc, address, count)
+        if got != fc:
+            detail = f"{where}: the reply is for function {_fc(got)}, not {fc}"
+            self._lose("protocol error", detail)
+            raise PlcCommError("protocol error", detail)
         return reply
 
     # ------------------------------------------------------------------------------ reading
 
     async def read_registers(self, register: str, address: int, count: int,
-                             timeout: float | None = None) -> list[int]:
-        """Words of one FC3 (holding) or FC4 (input) request. Raises PlcExceptionReply or
-        PlcCommError."""
-        if register not in _FC_READ:
-            raise ValueError(f"register must be holding or input, got {register!r}")
-        if not 1 <= count <= MAX_READ_COUNT:
-            raise ValueError(f"count must be 1..{MAX_READ_COUNT}, got {count}")
-        fc, dev = _FC_READ[register], self.plc.device_id
-        if register == "holding":
-            def call(c): return c.read_holding_registers(address, count=count, device_id=dev)
-        else:
-            def call(c): return c.read_input_registers(address, count=count, device_id=dev)
+                             timeout: float | None = None, device_id: int | None = None) -> list[int]:
+        """Words of one FC3 (holding) or FC4 (input) request, or the bits (0/1) of one FC1
+        (coil) or FC2 (discrete_input) request. Raises PlcExceptionReply or PlcCommError."""
+        if register not in READ_FUNCTION:
+            raise ValueError(f"register must be one of {', '.join(READ_FUNCTION)}, got {register!r}")
+        limit = MAX_READ_BITS if register in BIT_SPACES else MAX_READ_COUNT
+        if not 1 <= count <= limit:
+            raise ValueError(f"count must be 1..{limit}, got {count}")
+        fc = READ_FUNCTION[register]
+        dev = self.plc.device_id if device_id is None else device_id
+        method = {1: "read_coils", 2: "read_discrete_inputs", 3: "read_holding_registers",
+                  4: "read_input_registers"}[fc]
+
+        def call(c):
+            return getattr(c, method)(address, count=count, device_id=dev)
+
         reply = await self._execute(call, timeout or self.plc.timeout_s, fc, address, count)
+        if register in BIT_SPACES:
+            bits = list(getattr(reply, "bits", None) or [])
+            if not count <= len(bits) < count + 8:
+                detail = f"asked {count} bits at {address}, got {len(bits)}"
+                self._lose("protocol error", detail)
+                raise PlcCommError("protocol error", detail)
+            return [int(bool(b)) for b in bits[:count]]
         words = list(reply.registers)
         if len(words) != count:
             self._lose("protocol error", f"asked {count} registers at {address}, got {len(words)}")
@@ -313,6 +446,13 @@ class PlcClient:
         return await self.read_registers(self.advisory.register, self.advisory.start,
                                          self.advisory.size, timeout)
 
+    def _per_tag(self, req: ReadRequest) -> list[ReadRequest]:
+        """The requests of a group read one by one (bits of one register share a request)."""
+        out: dict[tuple[int, int], list] = {}
+        for t in req.tags:
+            out.setdefault((t.address, t.count), []).append(t)
+        return [ReadRequest(a, n, tuple(ts)) for (a, n), ts in out.items()]
+
     async def read_all(self) -> ReadResult:
         """Read every tag once, in the planned grouped requests, within the cycle budget."""
         wall, t0 = time.time(), self._clock()
@@ -320,13 +460,17 @@ class PlcClient:
         values: dict[str, TagValue] = {}
         sent = 0
         comm_error: str | None = None
+        if self.plc.close_after_poll and self._client is not None:
+            self._drop()        # one connection per poll (single-master gateways)
         if not await self.ensure_connected(min(self.plc.timeout_s, self.cycle_budget_s)):
             comm_error = self._last_error
-        queue = [] if comm_error else [(sp, r, False) for sp, r in self.plan]
+        queue = [] if comm_error else [(dev, sp, r, False) for dev, sp, r in self.plan]
         while queue:
-            space, req, single = queue.pop(0)
-            if not single and (space, req.start) in self._per_tag:
-                queue[:0] = [(space, ReadRequest(t.address, t.count, (t,)), True) for t in req.tags]
+            dev, space, req, single = queue.pop(0)
+            key = (dev, space, req.start)
+            split = self._split.get(key)
+            if not single and split is not None and self._clock() < split.retry_at:
+                queue[:0] = [(dev, space, r, True) for r in self._per_tag(req)]
                 continue
             remaining = deadline - self._clock()
             if remaining <= 0:
@@ -336,13 +480,11 @@ class PlcClient:
             sent += 1
             try:
                 words = await self.read_registers(space, req.start, req.count,
-                                                  min(self.plc.timeout_s, remaining))
+                                                  min(self.plc.timeout_s, remaining), dev)
             except PlcExceptionReply as exc:
-                if exc.code == 2 and len(req.tags) > 1 and not single:
-                    log.warning("PLC: %s; reading tags %s one by one from now on",
-                                exc, ", ".join(t.name for t in req.tags))
-                    self._per_tag.add((space, req.start))
-                    queue.insert(0, (space, req, False))
+                if exc.code == 2 and not single and len(self._per_tag(req)) > 1:
+                    self._refused_group(key, req, exc, split)
+                    queue[:0] = [(dev, space, r, True) for r in self._per_tag(req)]
                     continue
                 values.update((t.name, TagValue(t.name, None, f"modbus exception {exc.code}"))
                               for t in req.tags)
@@ -351,28 +493,58 @@ class PlcClient:
                 comm_error = exc.reason
                 values.update((t.name, TagValue(t.name, None, exc.reason)) for t in req.tags)
                 break
+            if split is not None and not single:
+                del self._split[key]
+                log.info("PLC: the grouped read of %s %s..%s (device %s) is accepted again",
+                         space, req.start, req.start + req.count - 1, dev)
             for tag in req.tags:
                 at = tag.address - req.start
                 values[tag.name] = _check_tag(tag, words[at : at + tag.count])
         for tag in self.tags:  # not read: no connection, or an earlier request failed
             values.setdefault(tag.name, TagValue(tag.name, None, comm_error or "not read"))
+        if comm_error is None:
+            self.failures.ok()
         ordered = {t.name: values[t.name] for t in self.tags}
         return ReadResult(ordered, wall, self._clock() - t0, sent, comm_error)
+
+    def _refused_group(self, key, req: ReadRequest, exc: PlcExceptionReply,
+                       split: _Split | None) -> None:
+        now = self._clock()
+        if split is None:
+            self._split[key] = _Split(now + REGROUP_MIN_S, REGROUP_MIN_S)
+            log.warning("PLC: %s; reading tags %s one by one; the grouped read is tried again "
+                        "in %g s (then less often, at most every %g s)", exc,
+                        ", ".join(t.name for t in req.tags), REGROUP_MIN_S, REGROUP_MAX_S)
+        else:
+            split.backoff_s = min(2 * split.backoff_s, REGROUP_MAX_S)
+            split.retry_at = now + split.backoff_s
+            log.debug("PLC: %s again; next grouped attempt in %g s", exc, split.backoff_s)
 
     # ------------------------------------------------------------------------------ writing
 
     def check_write_allowed(self, address: int, count: int) -> None:
-        """Raise WriteOutsideAdvisoryBlock unless [address, address+count) is inside the block."""
+        """Raise WriteOutsideAdvisoryBlock unless [address, address+count) is inside the
+        advisory block and touches no register the PLC owns (``reserved``, any holding tag)."""
         adv = self.advisory
+        what = f"refusing to write holding registers {address}..{address + count - 1}"
         if adv.register != "holding" or not adv.contains(address, count):
             raise WriteOutsideAdvisoryBlock(
-                f"refusing to write holding registers {address}..{address + count - 1}: "
-                f"writes are allowed only inside the advisory block "
+                f"{what}: writes are allowed only inside the advisory block "
                 f"{adv.register} {adv.start}..{adv.end - 1}")
+        for r in self.reserved:
+            if r.overlaps("holding", address, count):
+                raise WriteOutsideAdvisoryBlock(
+                    f"{what}: they overlap reserved holding {r.first}..{r.last} (PLC-owned)")
+        for t in self.tags:
+            if t.register == "holding" and t.address < address + count and address < t.end:
+                raise WriteOutsideAdvisoryBlock(
+                    f"{what}: they overlap tag '{t.name}' (holding {t.address}..{t.end - 1}, "
+                    "PLC-owned)")
 
     async def write_registers(self, address: int, words: Sequence[int],
                               timeout: float | None = None) -> None:
-        """One FC16 request. The allow-list is checked before anything is sent."""
+        """One FC16 request. The allow-list is checked before anything is sent; the reply must
+        echo the address and count."""
         words = list(words)
         self.check_write_allowed(address, len(words))
         if len(words) > MAX_WRITE_COUNT:
@@ -381,11 +553,27 @@ class PlcClient:
             if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w <= 0xFFFF:
                 raise ValueError(f"register word {w!r} is not an integer 0..65535")
         dev = self.plc.device_id
-        await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
-                            timeout or self.plc.timeout_s, 16, address, len(words))
+        reply = await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
+                                    timeout or self.plc.timeout_s, 16, address, len(words))
+        echo = (getattr(reply, "address", None), getattr(reply, "count", None))
+        if echo != (address, len(words)):
+            detail = (f"function 16 at {address}..{address + len(words) - 1}: the reply confirms "
+                      f"{echo[1]} registers at {echo[0]}")
+            self._lose("protocol error", detail)
+            raise PlcCommError("protocol error", detail)
+        self.failures.ok()
 
     async def write_advisory(self, words: Sequence[int], timeout: float | None = None) -> None:
-        """Write the whole advisory block (exactly ``size`` words) in ONE FC16 request."""
+        """Write the whole advisory block (exactly ``size`` words) in ONE FC16 request; with
+        ``close_after_poll`` the connection is closed afterwards (one connection per cycle)."""
         if len(words) != self.advisory.size:
             raise ValueError(f"the advisory block is {self.advisory.size} words, got {len(words)}")
-        await self.write_registers(self.advisory.start, words, timeout)
+        try:
+            await self.write_registers(self.advisory.start, words, timeout)
+        finally:
+            if self.plc.close_after_poll:
+                self._drop()
+
+
+def _fc(code, mask: int = 0xFF) -> str:
+    return str(code & mask) if isinstance(code, int) else repr(code)

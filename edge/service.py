@@ -165,7 +165,9 @@ class ModelAdvisor:
         if cfg.optimizer == "surrogate" and self.surrogate is None:
             raise StartupError(f"{cfg.path}: optimizer 'surrogate' but no surrogate.json in "
                                f"{getattr(state_io, 'dir', '?')} nor beside the config")
-        self.ranges = {t.name: t.range for t in cfg.tags}
+        # plausible ranges in canonical units (tags.yaml states them in each tag's own unit)
+        self.ranges = {t.name: t.canonical_range for t in cfg.tags
+                       if t.canonical_range is not None}
         self.window_s = cfg.calibration_window_h * 3600.0
         self._context: deque[dict] = deque(maxlen=CONTEXT_ROWS)
         self._context_loaded = False

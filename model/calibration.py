@@ -177,14 +177,16 @@ def spec_from_config(extra: dict, kind: str) -> CalibrationSpec:
     if not isinstance(node, dict):
         raise CalibrationError(f"key '{base}': expected a mapping")
     known = {"parameters", "goals", "tolerance", "correlation_limit", "change_penalty",
-             "use_flagged_rows", "window_minutes", "window_hours", "min_samples"}
+             "use_flagged_rows", "window_minutes", "window_hours", "min_samples",
+             "limits"}   # limits: commissioning plausibility, read by edge/commissioning.py
     for k in node:
         if k not in known:
             raise CalibrationError(f"key '{base}.{k}': unknown (known: {', '.join(sorted(known))})")
 
     def number(v, path, lo=None):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise CalibrationError(f"key '{path}': expected a number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or \
+                not (isinstance(v, float) or abs(v) < 2**1023) or not math.isfinite(v):
+            raise CalibrationError(f"key '{path}': expected a number, got {repr(v)[:60]}")
         if lo is not None and v < lo:
             raise CalibrationError(f"key '{path}': must be >= {lo}, got {v!r}")
         return float(v)

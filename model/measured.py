@@ -14,13 +14,10 @@ import pandas as pd
 
 from .analysis.compressors import eta_is_measured
 from .components import evaporator_UA
+from .columns import REQUIRED  # the one list of SPEC §4's required names (re-exported here)
 from .fluid import PropertyError, get_fluid
 from .params import PlantParams
 from .units import BAR, C_to_K
-
-REQUIRED = ("T_sink_in", "T_sink_out", "T_source_in", "T_source_out", "V_sink", "V_source",
-            "p_source_in", "p_source_out", "T_suc_LS", "T_dis_LS", "T_suc_HS", "T_dis_HS",
-            "p_suc_LS", "p_dis_LS", "p_suc_HS", "p_dis_HS", "T_c", "T_e", "W_LS", "W_HS", "p_m_sp")
 
 # Plausible ranges [canonical units] used when the caller passes none (the gateway passes the
 # tag map's ranges). A value outside is marked bad, never clamped.

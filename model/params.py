@@ -19,6 +19,21 @@ class ParamError(ValueError):
     """A parameter dict is incomplete or invalid; the message names the key path."""
 
 
+def _finite(v) -> bool:
+    """A finite int or float (not a bool; an integer too large for a float is not finite)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return bool(np.isfinite(float(v)))
+    except OverflowError:
+        return False
+
+
+def _short(v, limit: int = 60) -> str:
+    text = repr(v)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def poly_basis(pi: float, n: float) -> tuple[float, ...]:
     return (1.0, pi, n, pi * pi, pi * n, n * n)
 
@@ -172,8 +187,8 @@ class PlantParams:
 
         def num(path: str, positive: bool = True) -> float:
             v = get(path)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-                raise ParamError(f"key '{path}': expected a number, got {v!r}")
+            if not _finite(v):
+                raise ParamError(f"key '{path}': expected a number, got {_short(v)}")
             if positive and v <= 0:
                 raise ParamError(f"key '{path}': must be > 0, got {v!r}")
             return float(v)
@@ -181,9 +196,9 @@ class PlantParams:
         def coeffs(path: str) -> tuple[float, ...]:
             v = get(path)
             if (not isinstance(v, (list, tuple)) or len(v) != len(POLY_BASIS)
-                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+                    or not all(_finite(x) for x in v)):
                 raise ParamError(f"key '{path}': expected {len(POLY_BASIS)} numbers on the basis "
-                                 f"{', '.join(POLY_BASIS)}, got {v!r}")
+                                 f"{', '.join(POLY_BASIS)}, got {_short(v)}")
             return tuple(float(x) for x in v)
 
         def compressor(name: str) -> Compressor:
@@ -199,24 +214,41 @@ class PlantParams:
 
         def dp_coef():
             dp = get("source_pressure_drop.dp_clean_coef")
-            if not (isinstance(dp, (list, tuple)) and len(dp) == 3
-                    and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in dp)):
+            if not (isinstance(dp, (list, tuple)) and len(dp) == 3 and all(_finite(x) for x in dp)):
                 raise ParamError("key 'source_pressure_drop.dp_clean_coef': expected 3 numbers "
                                  "[bar, bar/(m3/h), bar/(m3/h)^2]")
             # config: dp [bar] with V [m3/h]  ->  SI: dp [Pa] with V [m3/s]
             return (dp[0] * BAR, dp[1] * BAR / M3H, dp[2] * BAR / M3H ** 2)
+        if not isinstance(d, dict):
+            raise ParamError(f"expected a mapping of keys, got {type(d).__name__}")
         cal = d.get("calibrated", {}) or {}
+        if not isinstance(cal, dict):
+            errors.append("key 'calibrated': expected a mapping")
+            cal = {}
 
         def calnum(key: str, default: float) -> float:
             v = cal.get(key, default)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
-                raise ParamError(f"key 'calibrated.{key}': expected a number >= 0, got {v!r}")
+            if not _finite(v) or v < 0:
+                raise ParamError(f"key 'calibrated.{key}': expected a number >= 0, got {_short(v)}")
             return float(v)
 
-        backend = d.get("property_backend", "HEOS")
+        def text(key: str, default: str) -> str:
+            v = d.get(key, default)
+            if not isinstance(v, str) or not v:
+                errors.append(f"key '{key}': expected a name, got {_short(v)}")
+                return default
+            return v
+
+        def ambient() -> float:
+            v = d.get("ambient_pressure_bar", DEFAULT_AMBIENT_BAR)
+            if not _finite(v) or not 0.5 <= v <= 1.2:
+                raise ParamError(f"key 'ambient_pressure_bar': expected a number of bar within "
+                                 f"0.5..1.2, got {_short(v)}")
+            return float(v)
+
         kwargs = dict(
-            fluid=str(d.get("fluid", "Ammonia")), backend=str(backend),
-            ambient_pressure=float(d.get("ambient_pressure_bar", DEFAULT_AMBIENT_BAR)) * BAR,
+            fluid=text("fluid", "Ammonia"), backend=text("property_backend", "HEOS"),
+            ambient_pressure=collect(ambient, default=DEFAULT_AMBIENT_BAR) * BAR,
             cp_w=collect(num, "water.cp_kJ_per_kgK") * 1e3, rho_w=collect(num, "water.rho_kg_per_m3"),
             U_eva=collect(num, "evaporator.U_W_per_m2K"), A_eva=collect(num, "evaporator.A_m2"),
             superheat=collect(num, "evaporator.superheat_K"),

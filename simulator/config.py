@@ -1,8 +1,12 @@
 """Simulator settings (config/simulator.yaml) and the register map it serves (tags.yaml, the
-advisory block of gateway.yaml), read with plain yaml.
+advisory block of gateway.yaml).
 
-The simulator does not import ``edge.*``: it reads the same files independently, so a bug in the
-gateway's config or codec cannot hide itself in tests. Errors name the file, the entry and the key.
+The simulator interprets these files independently of the gateway (it does not import
+``edge.config`` or ``edge.codec``), so a bug in the gateway's config or codec cannot hide itself
+in tests. Only the parsing of YAML text is shared: ``edge.yamlfile`` (PyYAML and nothing else of
+hp-edge) is the one strict loader of every configuration file, refusing duplicate keys,
+anchors/aliases, deep nesting and oversized files the same way everywhere. Errors name the file,
+the entry, the key and, for unknown keys, the line.
 """
 from __future__ import annotations
 
@@ -11,7 +15,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
+from edge.yamlfile import YamlFileError, fmt_value, key_line, load_yaml_or_raise
+from model.units import CANONICAL_UNITS
 
 REPO_CONFIG = Path(__file__).resolve().parent.parent / "config"
 DEFAULT_CONFIG = REPO_CONFIG / "simulator.yaml"
@@ -52,7 +57,7 @@ class TagSpec:
 def read_tags(path: str | Path) -> dict[str, TagSpec]:
     """Read tags.yaml -> {name: TagSpec}, checking what the simulator relies on."""
     path = Path(path)
-    doc = _load(path)
+    doc = load_yaml_file(path)
     tags = doc.get("tags") if isinstance(doc, dict) else None
     if not isinstance(tags, dict) or not tags:
         raise SimConfigError(f"{path}: expected a non-empty mapping 'tags'")
@@ -62,9 +67,16 @@ def read_tags(path: str | Path) -> dict[str, TagSpec]:
         where = f"{path}: tag '{name}'"
         if not isinstance(t, dict):
             raise SimConfigError(f"{where}: expected a mapping")
-        unknown = set(t) - TAG_KEYS
+        unknown = sorted(set(t) - TAG_KEYS, key=str)
         if unknown:
-            raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+            raise SimConfigError(f"{_at(where, t, unknown[0])}: unknown key '{unknown[0]}' (the "
+                                 f"simulator serves keys {', '.join(sorted(TAG_KEYS))})")
+        unit = t.get("unit", "")
+        if unit not in CANONICAL_UNITS.values() or t.get("pressure") == "absolute":
+            raise SimConfigError(f"{where}: key 'unit': the simulator serves values in the "
+                                 f"canonical units ({', '.join(CANONICAL_UNITS.values())}, "
+                                 f"pressures gauge), not {fmt_value(unit)}"
+                                 + (" absolute" if t.get("pressure") == "absolute" else ""))
         for key in ("register", "address", "type"):
             if key not in t:
                 raise SimConfigError(f"{where}: missing key '{key}'")
@@ -112,7 +124,7 @@ class AdvisoryBlock:
 def read_advisory(path: str | Path) -> AdvisoryBlock:
     """The writable advisory block of gateway.yaml (only register, start, size are used here)."""
     path = Path(path)
-    doc = _load(path)
+    doc = load_yaml_file(path)
     adv = doc.get("advisory") if isinstance(doc, dict) else None
     if not isinstance(adv, dict):
         raise SimConfigError(f"{path}: missing mapping 'advisory'")
@@ -329,7 +341,7 @@ FAMILY_KEYS = ("eta_is_max", "eta_is_floor", "pi_opt", "w_ln_pi", "n_opt", "w_n"
 def load_simulator_config(path: str | Path | None = None) -> SimulatorConfig:
     """Read config/simulator.yaml (or ``path``); relative file names resolve against its folder."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    doc = _load(path)
+    doc = load_yaml_file(path)
     if not isinstance(doc, dict):
         raise SimConfigError(f"{path}: expected a mapping at top level")
     return config_from_dict(doc, path)
@@ -339,9 +351,9 @@ def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
     where = str(path) if path else "<simulator config>"
     base = path.parent if path else REPO_CONFIG
     known = {f.name for f in dataclasses.fields(SimulatorConfig)} - {"path"}
-    unknown = set(doc) - known
+    unknown = sorted(set(doc) - known, key=str)
     if unknown:
-        raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+        raise SimConfigError(f"{_at(where, doc, unknown[0])}: unknown key '{unknown[0]}'")
     kw: dict = {"path": path}
     for key in ("tags_file", "gateway_file", "plant_file"):
         if key in doc:
@@ -366,10 +378,9 @@ def config_from_dict(doc: dict, path: Path | None = None) -> SimulatorConfig:
     if "compressor_families" in doc:
         kw["compressor_families"] = _families(doc["compressor_families"] or {}, where)
     if "truth" in doc:
-        t = doc["truth"] or {}
-        if not isinstance(t, dict):
-            raise SimConfigError(f"{where}: truth: expected a mapping")
-        t = dict(t)
+        if not isinstance(doc["truth"] or {}, dict):
+            raise SimConfigError(f"{where}: key 'truth' must be a mapping")
+        t = dict(doc["truth"] or {})
         comps = t.pop("compressors", {}) or {}
         if "compressor_family" in t:
             raise SimConfigError(f"{where}: truth: unknown key 'compressor_family' "
@@ -542,19 +553,32 @@ def _check(cfg: SimulatorConfig, where: str) -> None:
 
 
 # ----------------------------------------------------------------------------------- helpers --
-def _load(path: Path):
+def load_yaml_file(path: Path):
+    """The strict loader of every hp-edge configuration file (edge.yamlfile); SimConfigError
+    with every problem."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
-    except OSError as exc:
-        raise SimConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise SimConfigError(f"{path}: invalid YAML: {exc}") from None
+        return load_yaml_or_raise(path, str(path))
+    except YamlFileError as exc:
+        raise SimConfigError(str(exc)) from None
+
+
+def _at(where: str, data, key) -> str:
+    """``where`` with the line of ``key`` when known: 'file: line 12: truth'."""
+    line = key_line(data, key)
+    if line is None:
+        return where
+    file, _, rest = where.partition(": ")
+    return f"{file}: line {line}" + (f": {rest}" if rest else "")
 
 
 def _number(v, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise SimConfigError(f"{where} must be a finite number, got {v!r}")
+    ok = not isinstance(v, bool) and isinstance(v, (int, float))
+    try:
+        ok = ok and math.isfinite(float(v))
+    except OverflowError:       # an integer too large for a float
+        ok = False
+    if not ok:
+        raise SimConfigError(f"{where} must be a finite number, got {fmt_value(v)}")
     return float(v)
 
 
@@ -562,9 +586,9 @@ def _dataclass_from(cls, d, where: str, required: tuple = ()):
     if not isinstance(d, dict):
         raise SimConfigError(f"{where}: expected a mapping")
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(d) - set(fields)
+    unknown = sorted(set(d) - set(fields), key=str)
     if unknown:
-        raise SimConfigError(f"{where}: unknown key '{sorted(unknown)[0]}'")
+        raise SimConfigError(f"{_at(where, d, unknown[0])}: unknown key '{unknown[0]}'")
     for key in required:
         if key not in d:
             raise SimConfigError(f"{where}: missing key '{key}'")
@@ -576,6 +600,8 @@ def _dataclass_from(cls, d, where: str, required: tuple = ()):
                 raise SimConfigError(f"{where}: key '{key}' must be a list of {len(default)} numbers")
             kw[key] = tuple(_number(x, f"{where}: key '{key}'") for x in v)
         elif isinstance(default, float) or (default is None and key not in ("tag", "kind")):
+            if v is None and default is not None:    # only optional values may be left empty
+                raise SimConfigError(f"{where}: key '{key}' must be a finite number, got null")
             kw[key] = None if v is None else _number(v, f"{where}: key '{key}'")
         else:
             kw[key] = v if v is None else str(v)

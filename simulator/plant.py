@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 
 import numpy as np
-import yaml
 
 from model.cycle import ModelError
 from model.fluid import get_fluid
@@ -39,7 +38,8 @@ from model.params import Compressor, CycleInputs, PlantParams
 from model.units import BAR, M3H, T0
 
 from .compressors import curve_envelope, shaped_from
-from .config import NOMINAL, PERTURBED, FlowCfg, SimConfigError, SimulatorConfig, load_simulator_config
+from .config import (NOMINAL, PERTURBED, FlowCfg, SimConfigError, SimulatorConfig, load_simulator_config,
+                     load_yaml_file)
 from .profiles import DAY, Boundary, CipSchedule, Fouling, Profiles
 from .sensors import LSController, sensor_values
 
@@ -73,8 +73,7 @@ class SteadyPoint:
 
 
 def load_params(cfg: SimulatorConfig) -> PlantParams:
-    with open(cfg.plant_file, encoding="utf-8") as fh:
-        return PlantParams.from_dict(yaml.safe_load(fh))
+    return PlantParams.from_dict(load_yaml_file(cfg.plant_file))
 
 
 def true_params(nominal: PlantParams, cfg: SimulatorConfig) -> PlantParams:

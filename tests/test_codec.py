@@ -15,6 +15,7 @@ from edge.advisory import decode_advisory, encode_advisory, status_word
 from edge.codec import (
     BYTE_ORDERS,
     TYPES,
+    bit_of,
     decode,
     encode,
     format_number,
@@ -28,7 +29,8 @@ from edge.config import load_config
 REPO = Path(__file__).resolve().parents[1]
 DT = ModbusTcpClient.DATATYPE
 PYMODBUS_TYPE = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32,
-                 "uint32": DT.UINT32, "float32": DT.FLOAT32}
+                 "uint32": DT.UINT32, "float32": DT.FLOAT32, "int64": DT.INT64,
+                 "uint64": DT.UINT64, "float64": DT.FLOAT64}
 # pymodbus' word_order covers two of our byte orders; BADC/DCBA are checked by golden tables
 PYMODBUS_ORDER = {"ABCD": "big", "CDAB": "little"}
 
@@ -62,6 +64,15 @@ GOLDEN = [
     (-12.3, "int16", "ABCD", 0.1, 0.0, [0xFF85]),       # raw -123
     (373.15, "uint16", "ABCD", 0.01, 273.15, [0x2710]),  # raw 10000
     (1234.5, "uint16", "ABCD", 0.5, 0.0, [0x09A5]),     # raw 2469
+    (0x1234, "uint16", "BA", 1.0, 0.0, [0x3412]),       # 16-bit byte swap
+    (-2, "int16", "BA", 1.0, 0.0, [0xFEFF]),
+    (0x0102030405060708, "uint64", "ABCD", 1.0, 0.0, [0x0102, 0x0304, 0x0506, 0x0708]),
+    (0x0102030405060708, "uint64", "CDAB", 1.0, 0.0, [0x0708, 0x0506, 0x0304, 0x0102]),
+    (0x0102030405060708, "uint64", "BADC", 1.0, 0.0, [0x0201, 0x0403, 0x0605, 0x0807]),
+    (0x0102030405060708, "uint64", "DCBA", 1.0, 0.0, [0x0807, 0x0605, 0x0403, 0x0201]),
+    (-2, "int64", "ABCD", 1.0, 0.0, [0xFFFF, 0xFFFF, 0xFFFF, 0xFFFE]),
+    (1.0, "float64", "ABCD", 1.0, 0.0, [0x3FF0, 0x0000, 0x0000, 0x0000]),
+    (25.5, "float64", "CDAB", 1.0, 0.0, [0x0000, 0x0000, 0x8000, 0x4039]),  # 0x4039800000000000
 ]
 
 
@@ -77,10 +88,22 @@ def test_golden_decode(value, type_, order, scale, offset, words):
     assert abs(got - value) <= tol
 
 
-def test_16_bit_types_ignore_byte_order():
-    for order in BYTE_ORDERS:
+def test_16_bit_types_ignore_the_32_bit_orders_and_swap_with_BA():
+    for order in BYTE_ORDERS + ("AB",):
         assert encode(-2, "int16", order) == [0xFFFE]
         assert raw_value([0x1234], "uint16", order) == 0x1234
+    assert raw_value([0x1234], "uint16", "BA") == 0x3412
+    with pytest.raises(ValueError, match="unknown byte order 'BA' for a 32/64-bit value"):
+        raw_value([0, 0], "float32", "BA")
+
+
+def test_bit_of_a_word():
+    word = 0b1000_0000_0000_0101
+    assert [bit_of(word, b) for b in range(16)] == [1, 0, 1] + [0] * 12 + [1]
+    with pytest.raises(ValueError, match="bit 16 is not 0..15"):
+        bit_of(word, 16)
+    with pytest.raises(ValueError, match="not an integer 0..65535"):
+        bit_of(-1, 0)
 
 
 def test_float32_nan_and_infinity():
@@ -148,6 +171,8 @@ def test_format_number_keeps_config_numbers_exact():
 def _values_of(type_):
     if type_ == "float32":
         return st.floats(width=32, allow_nan=False)
+    if type_ == "float64":
+        return st.floats(allow_nan=False)
     lo, hi = raw_limits(type_)
     return st.integers(int(lo), int(hi))
 
@@ -173,7 +198,7 @@ words = st.integers(0, 0xFFFF)
 @pytest.mark.parametrize("type_", list(TYPES))
 @pytest.mark.parametrize("order", BYTE_ORDERS)
 @settings(max_examples=60, deadline=None)
-@given(regs=st.lists(words, min_size=2, max_size=2))
+@given(regs=st.lists(words, min_size=4, max_size=4))
 def test_registers_survive_raw_round_trip(type_, order, regs):
     regs = regs[: TYPES[type_][1]]
     raw = raw_value(regs, type_, order)
@@ -233,6 +258,8 @@ def test_plan_for_default_tags():
     holding = [t for t in cfg.tags if t.register == "holding"]
     assert _spans(plan_reads(inputs)) == [(0, 32, [t.name for t in inputs])]
     assert _spans(plan_reads(holding)) == [(100, 11, ["plc_clock", "life_counter", "p_m_sp"])]
+    assert _spans(plan_reads(holding, max_gap=cfg.plc.max_read_gap)) == [   # as shipped: 0
+        (100, 3, ["plc_clock", "life_counter"]), (110, 1, ["p_m_sp"])]
     assert _spans(plan_reads(holding, max_gap=6)) == [
         (100, 3, ["plc_clock", "life_counter"]), (110, 1, ["p_m_sp"])]
 
@@ -265,6 +292,29 @@ def test_plan_rejects_mixed_spaces_and_bad_limits():
         plan_reads([T("a", 0), T("b", 1, register="holding")])
     with pytest.raises(ValueError, match="max_count"):
         plan_reads([T("a", 0)], max_count=126)
+    with pytest.raises(ValueError, match="one device"):
+        plan_reads([D("a", 0, device_id=1), D("b", 1, device_id=2)])
+
+
+@dataclass(frozen=True)
+class D:
+    name: str
+    address: int
+    type: str = "uint16"
+    register: str = "input"
+    device_id: int | None = None
+
+
+def test_plan_of_coils_and_64_bit_values():
+    coils = [D(f"c{i}", 10 * i, "bool", "coil") for i in range(300)]
+    plan = plan_reads(coils)                     # bits: up to 2000 per request
+    assert [(r.start, r.count) for r in plan] == [(0, 1991), (2000, 991)]
+    with pytest.raises(ValueError, match="max_count must be 2..2000"):
+        plan_reads(coils, max_count=2001)
+    wide = [D("a", 0, "float64"), D("b", 4, "int64"), D("c", 8, "uint16")]
+    assert _spans(plan_reads(wide, max_gap=0)) == [(0, 9, ["a", "b", "c"])]
+    shared = [D("run", 30), D("cip", 30), D("x", 31)]   # two bits of one register
+    assert _spans(plan_reads(shared, max_gap=0)) == [(30, 2, ["run", "cip", "x"])]
 
 
 def _min_requests(tags, max_gap, max_count):

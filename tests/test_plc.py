@@ -37,7 +37,7 @@ CFG = load_config(REPO / "config" / "gateway.yaml", load_plant=False)
 DT = ModbusTcpClient.DATATYPE
 PM_TYPE = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32, "uint32": DT.UINT32,
            "float32": DT.FLOAT32}
-PM_ORDER = {"ABCD": "big", "CDAB": "little"}
+PM_ORDER = {"AB": "big", "ABCD": "big", "CDAB": "little"}
 
 PLANT = {  # a plausible operating point, engineering units
     "T_sink_in": 40.0, "T_sink_out": 68.0, "T_source_in": 25.0, "T_source_out": 18.0,
@@ -116,7 +116,7 @@ def plant_server(values=PLANT, **kw):
 
 def client(port: int, *, tags=CFG.tags, budget: float = 4.0, clock=None, **plc) -> PlcClient:
     cfg = dataclasses.replace(CFG.plc, host="127.0.0.1", port=port,
-                              **{"timeout_s": 1.0, **plc})
+                              **{"timeout_s": 1.0, "max_read_gap": 10, **plc})
     kw = {"clock": clock} if clock else {}
     return PlcClient(cfg, tags, CFG.advisory, cycle_budget_s=budget, **kw)
 
@@ -321,7 +321,8 @@ def test_connection_refused_then_backoff_then_recovery(caplog):
     failed = [r for r in caplog.records if "connect failed" in r.message]
     assert [r.levelno for r in failed] == [logging.WARNING] + [logging.DEBUG] * 4
     assert [r.message for r in caplog.records if r.levelno == logging.WARNING
-            and "answering again" in r.message] == [f"PLC 127.0.0.1:{port}: answering again"]
+            and "answering again" in r.message] == [
+        f"PLC 127.0.0.1:{port}: answering again after 5 failure(s) in 15 s"]
 
 
 # ------------------------------------------------------------------------------- writing

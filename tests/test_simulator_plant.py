@@ -227,7 +227,7 @@ def test_config_errors_name_file_and_key(tmp_path):
         config_from_dict({"faults": [{"kind": "stuck"}]}, tmp_path / "simulator.yaml")
     bad = tmp_path / "tags.yaml"
     bad.write_text("tags:\n  T_e: {register: input, address: 0, type: int16, colour: red}\n")
-    with pytest.raises(SimConfigError, match=r"tags.yaml: tag 'T_e': unknown key 'colour'"):
+    with pytest.raises(SimConfigError, match=r"tags.yaml: line 2: tag 'T_e': unknown key 'colour'"):
         read_tags(bad)
 
 
@@ -242,3 +242,13 @@ def test_fault_specs_validate():
     spec = parse_cli_fault("out_of_range:T_c:value=150")
     assert spec.kind == "out_of_range" and spec.tag == "T_c" and spec.value == 150.0
     assert parse_cli_fault("frozen:at_h=2,duration_h=0.5").duration_h == 0.5
+
+
+def test_simulator_config_shapes_are_checked(tmp_path):
+    """Found by the input campaign: a truth that is not a mapping was a ValueError traceback."""
+    with pytest.raises(SimConfigError, match=r"simulator.yaml: key 'truth' must be a mapping"):
+        config_from_dict({"truth": "CF_eva"}, tmp_path / "simulator.yaml")
+    with pytest.raises(SimConfigError, match=r"lags_s: key 'speed' must be a finite number, got null"):
+        config_from_dict({"lags_s": {"speed": None}}, tmp_path / "simulator.yaml")
+    with pytest.raises(SimConfigError, match=r"time: key 'tick_s' must be a finite number, got 1000000"):
+        config_from_dict({"time": {"tick_s": 10**400}}, tmp_path / "simulator.yaml")

@@ -1,9 +1,11 @@
 """Analysis commands on SCADA history CSVs: calibrate, optimize, fit-surrogate, replay (SPEC §5-6).
 
 History CSVs carry the canonical columns of SPEC §4 with a first column ``timestamp`` (ISO 8601, UTC
-when naive). Rows whose timestamp cannot be read, or that repeat one, are skipped and counted; rows
-with bad values are marked unusable by the measured-side processing and counted per reason. Heavy
-imports (CoolProp, SciPy, pandas) stay inside the command functions.
+when naive); they are read by ``edge.io.history`` (separator and decimal mark detected, or given
+with --sep/--decimal). Rows whose timestamp cannot be read, or that repeat one, are skipped and
+counted (the first bad one named with its line); rows with bad values are marked unusable by the
+measured-side processing and counted per reason. Heavy imports (CoolProp, SciPy, pandas) stay
+inside the command functions.
 """
 from __future__ import annotations
 
@@ -12,9 +14,9 @@ import math
 import sys
 import time
 
-from edge.plantfile import DEFAULT_PLANT
-
 DEFAULT_STATE_DIR = "var/state"
+PLANT_HELP = ("plant file (default: config/plant.yaml, else /etc/hp-edge/plant.yaml, else the one "
+              "shipped with the package)")
 
 
 def register(sub) -> None:
@@ -27,9 +29,14 @@ def register(sub) -> None:
                                           "on commissioning data",
                           description="Initial calibration (CF_DSH, CF_con, CF_SC, CF_eva) and the clean "
                                       "pressure-drop fit on a clean window; default window: the first "
-                                      "usable minutes (calibration.initial.window_minutes, 90).")
+                                      "usable minutes (calibration.initial.window_minutes, 90). A result "
+                                      "outside the plausibility limits (calibration.initial.limits: "
+                                      "objective, parameters at a bound, dp_clean R^2) is not saved "
+                                      "unless --force; exit code 2 names the limit.")
     _common(ini)
     ini.add_argument("--window", default=None, help="START/END (ISO 8601, UTC when naive)")
+    ini.add_argument("--force", action="store_true",
+                     help="save the result even when it fails the plausibility limits")
     ini.set_defaults(func=cmd_calibrate_initial)
     fou = csub.add_parser("fouling", help="R_th,f and CF_dp,f on a window of recent operation",
                           description="Fouling calibration (R_th,f, CF_dp,f) on the fixed model of the "
@@ -49,7 +56,7 @@ def register(sub) -> None:
                         description="Fit the p_m,sp surrogate (SPEC §6) on optimization results of the "
                                     "model over fouling levels and operating points; prints R^2 on the "
                                     "held-out 30 % and saves the coefficients.")
-    fs.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    fs.add_argument("--config", default=None, help=PLANT_HELP)
     fs.add_argument("--state-dir", default=DEFAULT_STATE_DIR,
                     help=f"state directory; its initial calibration is used when present ({DEFAULT_STATE_DIR})")
     fs.add_argument("--out", default=None, help="coefficients file (default: STATE_DIR/surrogate.json)")
@@ -65,8 +72,9 @@ def register(sub) -> None:
                                     "the set-point optimization. Writes DIR/windows.csv, DIR/cip.csv, "
                                     "DIR/summary.txt and the calibration results.")
     rp.add_argument("history", help="history CSV (canonical columns, timestamp first)")
+    _csv_format(rp)
     rp.add_argument("--out", required=True, help="output directory")
-    rp.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    rp.add_argument("--config", default=None, help=PLANT_HELP)
     rp.add_argument("--initial-window", default=None,
                     help="START/END of the clean initial window (default: the first 90 usable minutes)")
     rp.add_argument("--window-hours", type=float, default=None, help="calibration window length (2 h)")
@@ -81,9 +89,17 @@ def register(sub) -> None:
     rp.set_defaults(func=cmd_replay)
 
 
+def _csv_format(p) -> None:
+    p.add_argument("--sep", choices=(",", ";", "tab"), default=None,
+                   help="column separator of the CSV (default: detected from the header)")
+    p.add_argument("--decimal", choices=(".", ","), default=None,
+                   help="decimal mark of the CSV (default: detected from the numbers)")
+
+
 def _common(p) -> None:
     p.add_argument("data", help="history CSV (canonical columns, timestamp first)")
-    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    _csv_format(p)
+    p.add_argument("--config", default=None, help=PLANT_HELP)
     p.add_argument("--state-dir", default=DEFAULT_STATE_DIR, help=f"state directory ({DEFAULT_STATE_DIR})")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
 
@@ -96,7 +112,8 @@ class CommandError(Exception):
 
 
 def _fail(cmd: str, exc: Exception) -> int:
-    for line in str(exc).splitlines() or [type(exc).__name__]:
+    from edge.yamlfile import format_problems
+    for line in format_problems(str(exc).splitlines() or [type(exc).__name__]):
         print(f"hp-edge {cmd}: {line}", file=sys.stderr)
     return 2
 
@@ -110,8 +127,9 @@ def _version() -> str:
 
 
 def _params(path):
+    from edge.config import find_config
     from edge.plantfile import load_plant
-    return load_plant(path)
+    return load_plant(find_config("plant.yaml", path))
 
 
 def parse_window(text: str):
@@ -132,64 +150,40 @@ def parse_window(text: str):
     return out[0], out[1]
 
 
-def read_history_csv(path):
+def read_history_csv(path, sep=None, decimal=None):
     """(history DataFrame sorted by time with a UTC ``timestamp`` column, skipped rows per reason,
-    non-numeric cells per column)."""
-    import pandas as pd
+    non-numeric cells per column); edge.io.history does the reading (CommandError on failure)."""
+    from edge.io.history import HistoryError
+    from edge.io.history import read_history_csv as _read
     try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False)
-    except FileNotFoundError:
-        raise CommandError(f"{path}: no such file") from None
-    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise CommandError(f"{path}: cannot read as CSV: {exc}") from None
-    if "timestamp" not in df.columns:
-        raise CommandError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
-    from model.measured import REQUIRED
-    missing = [c for c in REQUIRED if c not in df.columns]
-    if missing:   # without any of these every row would be unusable: say which, up front
-        raise CommandError(f"{path}: missing column(s) {', '.join(missing)} "
-                           "(canonical history columns, SPEC §4)")
-    skipped: dict[str, int] = {}
-    ts = pd.to_datetime(df["timestamp"], utc=True, errors="coerce", format="ISO8601")
-    bad = ts.isna().to_numpy()
-    if bad.any():
-        skipped["bad timestamp"] = int(bad.sum())
-    df = df.loc[~bad].copy()
-    df["timestamp"] = ts[~bad]
-    df = df.sort_values("timestamp", kind="stable")
-    dup = df["timestamp"].duplicated(keep="first").to_numpy()
-    if dup.any():
-        skipped["duplicate timestamp"] = int(dup.sum())
-        df = df.loc[~dup]
-    non_numeric: dict[str, int] = {}
-    for c in df.columns:
-        if c in ("timestamp", "quality"):
-            continue
-        text = df[c].str.strip()
-        num = pd.to_numeric(text, errors="coerce")
-        nn = (num.isna() & (text != "") & ~text.str.lower().isin(("nan", "na", "null", "none"))).to_numpy()
-        if nn.any():
-            non_numeric[c] = int(nn.sum())
-        df[c] = num
-    return df.reset_index(drop=True), skipped, non_numeric
+        return _read(path, sep, decimal)
+    except HistoryError as exc:
+        raise CommandError(str(exc)) from None
 
 
-def _report_reading(path, n, skipped, non_numeric, out=None) -> None:
+def _read_history(path, args):
+    """edge.io.history.History of ``path`` with the command's --sep/--decimal."""
+    from edge.io.history import HistoryError, read_history
+    sep = {"tab": "\t"}.get(args.sep, args.sep) if getattr(args, "sep", None) else None
+    try:
+        return read_history(path, sep, getattr(args, "decimal", None))
+    except HistoryError as exc:
+        raise CommandError(str(exc)) from None
+
+
+def _report_reading(path, history, out=None) -> None:
     out = out or sys.stdout
-    print(f"{path}: {n} rows read", file=out)
-    if skipped:
-        print("  rows skipped: " + ", ".join(f"{k}: {v}" for k, v in skipped.items()), file=out)
-    if non_numeric:
-        print("  values that are not numbers (marked missing): "
-              + ", ".join(f"{k}: {v}" for k, v in non_numeric.items()), file=out)
+    for line in history.report_lines(path):
+        print(line, file=out)
 
 
 def _load(args):
     """(plant params, history, window or None); reports what was read unless --json."""
     params = _params(args.config)
-    hist, skipped, nn = read_history_csv(args.data)
+    h = _read_history(args.data, args)
+    hist = h.frame
     if not args.json:
-        _report_reading(args.data, len(hist), skipped, nn)
+        _report_reading(args.data, h)
     window = parse_window(args.window) if getattr(args, "window", None) else None
     return params, hist, window
 
@@ -228,6 +222,7 @@ class Progress:
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.t0 = time.monotonic()
         self.last_decile = -1
+        self._width = 0
 
     def __call__(self, done: int, total: int) -> None:
         if done == 0:
@@ -239,7 +234,10 @@ class Progress:
         txt = f"{self.label} [{'#' * int(30 * frac):<30}] {done}/{total}  {el:5.0f} s" + (
             f", ~{eta:.0f} s left" if frac < 1 and math.isfinite(eta) else "")
         if self.tty:
-            print("\r" + txt, end="\n" if done >= total else "", file=self.stream, flush=True)
+            pad = " " * max(0, self._width - len(txt))   # a shorter line must not leave "leftt"
+            self._width = len(txt)
+            print("\r" + txt + pad, end="\n" if done >= total else "", file=self.stream,
+                  flush=True)
         else:
             dec = int(frac * 10)
             if dec > self.last_decile:
@@ -252,6 +250,7 @@ class Progress:
 # --------------------------------------------------------------------------------------------------
 def cmd_calibrate_initial(args) -> int:
     import numpy as np
+    from edge.commissioning import CommissioningLimits
     from edge.plantfile import PlantFileError
     from edge.statefiles import COMPRESSORS, DP_CLEAN, INITIAL_CALIBRATION, StateError, write_state
     from model.analysis.chain import AnalysisChain, ChainSettings
@@ -283,13 +282,22 @@ def cmd_calibrate_initial(args) -> int:
         base = learner.apply(params) if learner is not None else params
         res = calibrate(data, base, spec_from_config(params.extra, "initial"), window=win)
         dp = fit_dp_clean(data["V_source"], data["dp_source_bar"], window=win)
+        failed = CommissioningLimits.from_config(params.extra).failures(res, dp)
+        if failed and not args.force:
+            raise CommandError(
+                "not saved: the result fails the plausibility limits of plant.yaml "
+                "calibration.initial.limits (wrong input? e.g. swapped columns; --force saves "
+                "it anyway):\n" + "\n".join(f"  {f}" for f in failed))
         p1 = write_state(INITIAL_CALIBRATION, res.to_dict(), args.state_dir)
         p2 = write_state(DP_CLEAN, dp.to_dict(), args.state_dir)
         if learner is not None:
             write_state(COMPRESSORS, learner.to_dict(), args.state_dir)
     except (CommandError, PlantFileError, CalibrationError, DpFitError, StateError,
-            LearningError) as exc:
+            LearningError, ValueError) as exc:
         return _fail("calibrate initial", exc)
+    if failed:
+        for f in failed:
+            print(f"hp-edge calibrate initial: WARNING (saved with --force): {f}", file=sys.stderr)
     if args.json:
         print(json.dumps({"initial": res.to_dict(), "dp_clean": dp.to_dict()}, indent=1))
     else:
@@ -426,8 +434,9 @@ def cmd_replay(args) -> int:
     from model.analysis.replay import ReplayError, ReplaySettings, replay
     try:
         params = _params(args.config)
-        hist, skipped, nn = read_history_csv(args.history)
-        _report_reading(args.history, len(hist), skipped, nn)
+        h = _read_history(args.history, args)
+        hist, skipped, nn = h.frame, h.skipped, h.non_numeric
+        _report_reading(args.history, h)
         settings = ReplaySettings.from_config(params.extra, window_hours=args.window_hours,
                                               cip_off_minutes=args.cip_off_minutes,
                                               optimize=False if args.no_optimize else None,

@@ -5,9 +5,11 @@ Heavy imports (pymodbus via edge.plc) happen inside the command functions.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
-from edge.config import DEFAULT_CONFIG
+CONFIG_HELP = ("gateway.yaml (default: config/gateway.yaml, else /etc/hp-edge/gateway.yaml, else "
+               "the one shipped with the package)")
 
 # What each status bit means (SPEC 7.3); docs/registers.md is rendered from the YAML plus this.
 STATUS_BIT_NOTES = {   # what edge/loop.py does, word for word (the HMI map is generated from it)
@@ -47,7 +49,7 @@ def register(sub) -> None:
     p = sub.add_parser("check-config", help="validate the configuration and print the layout",
                        description="Validate gateway.yaml, tags.yaml and plant.yaml without "
                        "touching the network; print tags, planned reads and the advisory block.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--markdown", action="store_true",
                    help="print the register map as Markdown (the source of docs/registers.md)")
     p.set_defaults(func=cmd_check_config)
@@ -55,7 +57,7 @@ def register(sub) -> None:
     p = sub.add_parser("read", help="read the advisory block once, as the HMI sees it",
                        description="Connect to any Modbus TCP server, read the advisory block "
                        "once and print it decoded (status bits by name).")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--host", help="override plc.host")
     p.add_argument("--port", type=int, help="override plc.port")
     p.add_argument("--device-id", type=int, help="override plc.device_id")
@@ -70,12 +72,13 @@ def register(sub) -> None:
 def load_config_or_report(path, load_plant: bool = True):
     """The validated configuration, or None after printing every problem (file, tag, key) to
     stderr; callers then exit with code 2 before touching the network."""
-    from edge.config import ConfigError, load_config
+    from edge.config import ConfigError, find_config, load_config
+    from edge.yamlfile import format_problems
 
     try:
-        return load_config(path, load_plant=load_plant)
+        return load_config(find_config("gateway.yaml", path), load_plant=load_plant)
     except ConfigError as exc:
-        for line in exc.problems:
+        for line in format_problems(exc.problems):
             print(line, file=sys.stderr)
         print(f"{len(exc.problems)} problem(s); nothing was started.", file=sys.stderr)
         return None
@@ -93,13 +96,10 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def _read_plan(cfg):
-    from edge.codec import plan_reads
+    """(device, space, request) exactly as the gateway will send them."""
+    from edge.codec import plan_groups
 
-    for space in ("input", "holding"):
-        tags = [t for t in cfg.tags if t.register == space]
-        if tags:
-            for req in plan_reads(tags):
-                yield space, req
+    return plan_groups(cfg.tags, cfg.plc.device_id, cfg.plc.max_read_gap)
 
 
 def _num(x) -> str:
@@ -113,13 +113,50 @@ def _range(t) -> str:
 
 
 def _order(type_: str, byte_order: str) -> str:
-    return byte_order if type_ in ("int32", "uint32", "float32") else "AB"
+    from edge.codec import register_count
+
+    if type_ == "bool":
+        return ""
+    if register_count(type_) == 1:
+        return "BA" if byte_order == "BA" else "AB"
+    return byte_order
 
 
 def _ref(space: str, address: int) -> str:
-    """Modicon-style 1-based reference (3xxxx input, 4xxxx holding) that many HMIs use."""
-    prefix = {"input": 3, "holding": 4}[space]
+    """Modicon-style 1-based reference (0xxxx coil, 1xxxx discrete input, 3xxxx input register,
+    4xxxx holding register) that many HMIs use."""
+    prefix = {"coil": 0, "discrete_input": 1, "input": 3, "holding": 4}[space]
     return f"{prefix}{address + 1:04d}" if address < 9999 else f"{prefix}{address + 1:05d}"
+
+
+def _addr(t, sep: str = "–") -> str:
+    """'6–7' for a two-register value, '30.2' for bit 2 of register 30."""
+    if t.bit is not None:
+        return f"{t.address}.{t.bit}"
+    return f"{t.address}" + (f"{sep}{t.end - 1}" if t.count > 1 else "")
+
+
+def _tag_ref(t) -> str:
+    ref = _ref(t.register, t.address) + (f"–{_ref(t.register, t.end - 1)}" if t.count > 1 else "")
+    return ref + (f".{t.bit}" if t.bit is not None else "")
+
+
+def _unit(t) -> str:
+    """The tag's unit, and the canonical one it is converted to when they differ."""
+    text = t.unit + (" abs" if t.pressure == "absolute" else "")
+    canon = "bar(g)" if t.pressure else t.canonical_unit
+    return text if (t.unit == t.canonical_unit and t.pressure != "absolute") \
+        else f"{text} -> {canon}"
+
+
+def _devices(cfg) -> bool:
+    return any(t.device_id not in (None, cfg.plc.device_id) for t in cfg.tags)
+
+
+def _fc(space: str) -> int:
+    from edge.codec import READ_FUNCTION
+
+    return READ_FUNCTION[space]
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -139,19 +176,32 @@ def render_layout(cfg) -> str:
            f"{cfg.plc.timeout_s:g} s per request; reconnect {cfg.plc.reconnect_min_s:g}.."
            f"{cfg.plc.reconnect_max_s:g} s; scan every {cfg.scan_interval_s:g} s\n",
            f"\nTags ({len(cfg.tags)})\n"]
-    rows = [[t.name, t.register, str(t.address), t.type, _order(t.type, t.byte_order),
+    devices = _devices(cfg)
+    rows = [[t.name, t.register, _addr(t, ".."), t.type, _order(t.type, t.byte_order),
              _num(t.scale), _num(t.offset), t.unit, _range(t), _num(t.sentinel),
-             t.pressure or ""] for t in cfg.tags]
+             t.pressure or ""] + ([str(t.device_id or cfg.plc.device_id)] if devices else [])
+            for t in cfg.tags]
     out.append(_table(["name", "space", "addr", "type", "order", "scale", "offset", "unit",
-                       "range", "sentinel", "pressure"], rows))
+                       "range", "sentinel", "pressure"] + (["device"] if devices else []), rows))
+    converted = [f"{t.name} ({_unit(t)})" for t in cfg.tags
+                 if t.unit != t.canonical_unit or t.pressure == "absolute"]
+    if converted:
+        out.append("  converted to canonical units: " + ", ".join(converted) + "\n")
     plan = list(_read_plan(cfg))
-    out.append(f"\nRead plan ({len(plan)} request(s) per scan)\n")
-    for space, req in plan:
-        fc = 4 if space == "input" else 3
-        out.append(f"  FC{fc} {space} {req.start}..{req.start + req.count - 1} "
-                   f"({req.count} registers): {', '.join(t.name for t in req.tags)}\n")
+    out.append(f"\nRead plan ({len(plan)} request(s) per scan"
+               f"{', connection closed after each poll' if cfg.plc.close_after_poll else ''})\n")
+    for dev, space, req in plan:
+        what = ("bit" if space in ("coil", "discrete_input") else "register") \
+            + ("s" if req.count != 1 else "")
+        out.append(f"  FC{_fc(space)} {space} {req.start}..{req.start + req.count - 1} "
+                   f"({req.count} {what})" + (f" device {dev}" if devices else "")
+                   + f": {', '.join(t.name for t in req.tags)}\n")
     out.append(f"\nAdvisory block: {adv.register} {adv.start}..{adv.end - 1} ({adv.size} "
-               f"registers, 32-bit order {adv.byte_order}), written in one FC16 request\n")
+               f"registers, 32-bit order {adv.byte_order}), written in one FC16 request; the "
+               f"only registers the gateway writes\n")
+    if cfg.reserved:
+        out.append("  reserved (PLC-owned, never written): " + ", ".join(
+            f"{r.register} {r.first}..{r.last}" for r in cfg.reserved) + "\n")
     rows = [[f"{adv.start + f.offset}" + (f"..{adv.start + f.offset + 1}" if f.count == 2 else ""),
              str(f.offset), f.name, f.type, f.unit, f.description] for f in adv.fields]
     out.append(_table(["address", "offset", "field", "type", "unit", "description"], rows))
@@ -170,35 +220,46 @@ def render_markdown(cfg) -> str:
           f"`{cfg.tags_file.name}`; do not edit by hand (a test compares this file with the "
           f"YAML).\n\n",
           "Addresses are 0-based PDU addresses as sent on the wire. *Ref* is the 1-based "
-          "Modicon reference (3xxxx input register, 4xxxx holding register) many HMIs use. "
-          "16-bit values are big-endian (AB). 32-bit values take two registers; the byte order "
-          "names the order in which the value's big-endian bytes A B C D travel: ABCD = high word "
-          "first, CDAB = low word first, BADC / DCBA = the same with the bytes of each word "
-          "swapped. Engineering value = raw × scale + offset.\n\n",
+          "Modicon reference (0xxxx coil, 1xxxx discrete input, 3xxxx input register, 4xxxx "
+          "holding register) many HMIs use; `30.2` is bit 2 (0 = least significant) of register "
+          "30. 16-bit values are big-endian (AB) unless marked BA (bytes swapped). 32-bit values "
+          "take two registers; the byte order names the order in which the value's big-endian "
+          "bytes A B C D travel: ABCD = high word first, CDAB = low word first, BADC / DCBA = the "
+          "same with the bytes of each word swapped (64-bit values: the same rule word by word). "
+          "Engineering value = raw × scale + offset, in the tag's unit; the range is in that "
+          "unit too, and the gateway converts the value to the canonical unit (°C, bar(g), m³/h, "
+          "kW) before it is used.\n\n",
           "## Tags read from the PLC\n\n",
           "A value outside its plausible range, NaN/inf or equal to its sentinel is marked bad "
           "(never clamped); a tag not read successfully for `max_age_s` is stale.\n\n"]
-    for space, fc in (("input", 4), ("holding", 3)):
+    devices = _devices(cfg)
+    names = {"input": "Input registers", "holding": "Holding registers",
+             "discrete_input": "Discrete inputs", "coil": "Coils"}
+    for space in ("input", "holding", "discrete_input", "coil"):
         tags = [t for t in cfg.tags if t.register == space]
         if not tags:
             continue
-        md.append(f"### {space.capitalize()} registers (FC{fc})\n\n")
+        md.append(f"### {names[space]} (FC{_fc(space)})\n\n")
         md.append("| address | ref | tag | type | order | scale | offset | unit | range | "
-                  "max age s | sentinel | pressure |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+                  "max age s | sentinel | pressure |" + (" device |" if devices else "")
+                  + "\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+                  + ("---|" if devices else "") + "\n")
         for t in tags:
-            addr = f"{t.address}" + (f"–{t.end - 1}" if t.count == 2 else "")
-            ref = _ref(space, t.address) + (f"–{_ref(space, t.end - 1)}" if t.count == 2 else "")
-            md.append(f"| {addr} | {ref} | `{t.name}` | {t.type} | "
+            md.append(f"| {_addr(t)} | {_tag_ref(t)} | `{t.name}` | {t.type} | "
                       f"{_order(t.type, t.byte_order)} | {_num(t.scale)} | {_num(t.offset)} | "
-                      f"{t.unit} | {_range(t)} | {_num(t.max_age_s)} | {_num(t.sentinel)} | "
-                      f"{t.pressure or ''} |\n")
+                      f"{_unit(t)} | {_range(t)} | {_num(t.max_age_s)} | {_num(t.sentinel)} | "
+                      f"{t.pressure or ''} |"
+                      + (f" {t.device_id or cfg.plc.device_id} |" if devices else "") + "\n")
         md.append("\n")
     md.append("### Grouped reads per scan\n\n| function | registers | tags |\n|---|---|---|\n")
-    for space, req in _read_plan(cfg):
-        md.append(f"| FC{4 if space == 'input' else 3} {space} | {req.start}–"
-                  f"{req.start + req.count - 1} | {', '.join(t.name for t in req.tags)} |\n")
-    md.append(f"\nIf a grouped read spanning unused registers is refused with exception 2, the "
-              f"gateway reads that group tag by tag from then on.\n\n")
+    for dev, space, req in _read_plan(cfg):
+        md.append(f"| FC{_fc(space)} {space}" + (f" device {dev}" if devices else "")
+                  + f" | {req.start}–{req.start + req.count - 1} | "
+                  f"{', '.join(t.name for t in req.tags)} |\n")
+    md.append(f"\nA grouped read spans at most {cfg.plc.max_read_gap} unused register(s) "
+              f"(`plc.max_read_gap`). If the PLC refuses a grouped read with exception 2, the "
+              f"gateway reads that group tag by tag and tries the grouped read again after 60 s, "
+              f"then less often (at most hourly).\n\n")
     md.append(f"## Advisory block (written by the gateway, read by the HMI)\n\n"
               f"{adv.register.capitalize()} registers {adv.start}–{adv.end - 1} "
               f"({adv.size} registers), written as a whole in one FC16 request per cycle. "
@@ -229,31 +290,57 @@ def render_markdown(cfg) -> str:
 
 
 def cmd_read(args: argparse.Namespace) -> int:
+    """Only gateway.yaml's advisory layout (and its plc section, unless --host and --port name
+    the server) is read: no tags.yaml, no plant.yaml."""
     import asyncio
+    import dataclasses
     import logging
 
-    cfg = load_config_or_report(args.config, load_plant=False)
-    if cfg is None:
-        return 2
-    from edge.plc import quiet_pymodbus_logging
+    from edge.config import ConfigError, PlcConfig, find_config, load_read_config
+    from edge.yamlfile import format_problems
 
-    quiet_pymodbus_logging(logging.CRITICAL)  # one attempt, its outcome is reported below
-    logging.getLogger("edge.plc").setLevel(logging.ERROR)
+    path = find_config("gateway.yaml", args.config)
+    try:
+        plc, adv = load_read_config(path)
+    except ConfigError as exc:
+        for line in format_problems(exc.problems):
+            print(line, file=sys.stderr)
+        return 2
+    if args.timeout <= 0:
+        print("hp-edge read: --timeout must be > 0", file=sys.stderr)
+        return 2
+    if args.device_id is not None and not 1 <= args.device_id <= 255:
+        print("hp-edge read: --device-id must be 1..255 (0 is the broadcast address)",
+              file=sys.stderr)
+        return 2
+    if plc is None:
+        if args.host is None or args.port is None:
+            print(f"hp-edge read: the plc section of {path} is not valid; name the server with "
+                  "--host and --port", file=sys.stderr)
+            return 2
+        plc = PlcConfig(host=args.host, port=args.port)
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
                                    ("device_id", args.device_id)) if v is not None}
-    if args.timeout <= 0:
-        print("--timeout must be > 0", file=sys.stderr)
-        return 2
-    return asyncio.run(_read(cfg, overrides, args.timeout, args.json))
+    plc = dataclasses.replace(plc, **overrides)
+    # one attempt, its outcome is reported below: quiet the PLC loggers meanwhile
+    loggers = [logging.getLogger(n) for n in ("pymodbus", "edge.plc")]
+    saved = [lg.level for lg in loggers]
+    for lg, level in zip(loggers, (logging.CRITICAL, logging.ERROR)):
+        lg.setLevel(level)
+    try:
+        return asyncio.run(_read(plc, adv, args.timeout, args.json))
+    finally:
+        for lg, level in zip(loggers, saved):
+            lg.setLevel(level)
 
 
-async def _read(cfg, overrides: dict, timeout: float, as_json: bool) -> int:
+async def _read(plc_cfg, adv, timeout: float, as_json: bool) -> int:
     import asyncio
 
     from edge.advisory import decode_advisory
     from edge.plc import PlcClient, PlcError
 
-    plc = PlcClient.from_config(cfg, **overrides)
+    plc = PlcClient(plc_cfg, (), adv, cycle_budget_s=timeout)
     target = f"{plc.plc.host}:{plc.plc.port} device {plc.plc.device_id}"
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
@@ -266,31 +353,29 @@ async def _read(cfg, overrides: dict, timeout: float, as_json: bool) -> int:
         return 1
     finally:
         await plc.close()
-    decoded = decode_advisory(cfg.advisory, words)
-    print(_format_json(cfg, target, words, decoded) if as_json
-          else _format_text(cfg, target, decoded), end="")
+    decoded = decode_advisory(adv, words)
+    print(_format_json(adv, target, words, decoded) if as_json
+          else _format_text(adv, target, decoded), end="")
     return 0
 
 
-def _format_json(cfg, target: str, words: list[int], decoded: dict) -> str:
+def _format_json(adv, target: str, words: list[int], decoded: dict) -> str:
     import json
     import math
 
     def clean(v):
         return None if isinstance(v, float) and not math.isfinite(v) else v
 
-    adv = cfg.advisory
     doc = {"server": target, "register": adv.register, "start": adv.start, "size": adv.size,
            "words": words, "fields": {f.name: clean(decoded[f.name]) for f in adv.fields},
            "status_bits": decoded["status_bits"]}
     return json.dumps(doc, indent=2) + "\n"
 
 
-def _format_text(cfg, target: str, decoded: dict) -> str:
+def _format_text(adv, target: str, decoded: dict) -> str:
     import math
     from datetime import datetime, timezone
 
-    adv = cfg.advisory
     rows = []
     for f in adv.fields:
         v = decoded[f.name]
@@ -323,7 +408,7 @@ def register_run_demo(sub) -> None:
                        "history, calibrate and optimize on the configured cadence and write the "
                        "advisory block once per scan. Exit codes: 0 stopped on request, 2 invalid "
                        "configuration or state (nothing was connected), 1 unexpected error.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--time-source", choices=("wall", "plc"), default="wall",
                    help="time-stamp samples with the wall clock (default) or the PLC's clock "
                    "register plc_clock (plant time, e.g. an accelerated simulator)")
@@ -335,7 +420,7 @@ def register_run_demo(sub) -> None:
                        description="Start the plant simulator on 127.0.0.1 (free port) at 60x "
                        "plant speed and the gateway against it; show the advisory block as the "
                        "HMI reads it, beside the simulator's hidden truth. Ctrl-C stops both.")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="gateway.yaml (default: %(default)s)")
+    p.add_argument("--config", default=None, help=CONFIG_HELP)
     p.add_argument("--minutes", type=float, help="stop by itself after this many wall minutes")
     p.add_argument("--speed", type=float, default=60.0,
                    help="plant seconds per wall second (default: %(default)s)")
@@ -353,14 +438,44 @@ def register_run_demo(sub) -> None:
     p.set_defaults(func=cmd_demo)
 
 
-def _setup_logging(level: str) -> None:
-    import logging
+JOURNAL_PRIORITY = {"CRITICAL": 2, "ERROR": 3, "WARNING": 4, "INFO": 6, "DEBUG": 7}
+
+
+def stderr_is_journal(stream=None) -> bool:
+    """True when ``stream`` (default stderr) is the journal's stream socket: systemd sets
+    JOURNAL_STREAM=<device>:<inode> of it for the service's stdout/stderr."""
     import os
 
-    # under systemd, journald adds the time stamp and the unit name
-    fmt = ("%(levelname)s %(name)s: %(message)s" if os.environ.get("JOURNAL_STREAM")
-           else "%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.basicConfig(level=getattr(logging, level), format=fmt, stream=sys.stderr)
+    stream = stream or sys.stderr
+    want = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        dev, ino = (int(x) for x in want.split(":"))
+        st = os.fstat(stream.fileno())
+    except (ValueError, OSError, AttributeError):
+        return False
+    return (st.st_dev, st.st_ino) == (dev, ino)
+
+
+class JournalFormatter(logging.Formatter):
+    """'<4>WARNING edge.plc: ...': journald reads the <N> prefix as the syslog priority
+    (SyslogLevelPrefix=, on by default), so `journalctl -p warning` finds the warnings."""
+
+    def format(self, record) -> str:
+        prio = JOURNAL_PRIORITY.get(record.levelname, 6)
+        return "\n".join(f"<{prio}>{line}" for line in super().format(record).splitlines())
+
+
+def _setup_logging(level: str, stream=None) -> None:
+    import logging
+
+    stream = stream or sys.stderr
+    handler = logging.StreamHandler(stream)
+    if stderr_is_journal(stream):
+        # journald adds the time stamp and the unit name; the prefix carries the priority
+        handler.setFormatter(JournalFormatter("%(levelname)s %(name)s: %(message)s"))
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=getattr(logging, level), handlers=[handler])
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # edge.plc reports PLC problems
 
 
@@ -404,7 +519,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from edge.service import StartupError
 
     try:
-        return asyncio.run(run_demo(Path(args.config), args.minutes, args.speed,
+        from edge.config import find_config
+        return asyncio.run(run_demo(find_config("gateway.yaml", args.config), args.minutes,
+                                    args.speed,
                                     Path(args.state_dir) if args.state_dir else None,
                                     args.refresh, commissioning=not args.no_commissioning,
                                     report=False if args.no_report else

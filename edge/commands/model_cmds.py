@@ -5,7 +5,8 @@ import argparse
 import json
 import sys
 
-from edge.plantfile import DEFAULT_PLANT
+PLANT_HELP = ("plant file (default: config/plant.yaml, else /etc/hp-edge/plant.yaml, else the one "
+              "shipped with the package)")
 
 
 def finite(text: str) -> float:
@@ -31,7 +32,7 @@ def register(sub) -> None:
     p.add_argument("--p-m-sp", type=finite, default=16.0, help="intermediate-pressure set point [bar(g)] (16)")
     p.add_argument("--R-th-f", type=finite, default=None, help="evaporator fouling resistance [K/kW]")
     p.add_argument("--CF-dp-f", type=finite, default=None, help="fouling pressure-drop factor [-]")
-    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    p.add_argument("--config", default=None, help=PLANT_HELP)
     p.add_argument("--backend", choices=("HEOS", "BICUBIC&HEOS"), default=None,
                    help="property backend (default: the plant file's)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -39,9 +40,9 @@ def register(sub) -> None:
 
     b = sub.add_parser("bench", help="measure speed and accuracy targets, print JSON",
                        description="Benchmarks of every part; prints one JSON document.")
-    b.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
-    b.add_argument("--only", default="model,simulator,analysis,gateway",
-                   help="comma-separated sections (model,simulator,analysis,gateway)")
+    b.add_argument("--config", default=None, help=PLANT_HELP)
+    b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
+                   help="comma-separated sections (model,simulator,analysis,gateway,inputs)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -54,17 +55,19 @@ def register(sub) -> None:
     f.add_argument("table", help="manufacturer table (CSV)")
     f.add_argument("--stage", choices=("LS", "HS"), default="LS",
                    help="which compressor's swept volume and nominal speed to use (LS)")
-    f.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    f.add_argument("--config", default=None, help=PLANT_HELP)
     f.add_argument("--out", default=None, help="write the coefficients (YAML) to this file")
     f.set_defaults(func=cmd_fit_compressor)
 
 
 def _params(args):
+    from edge.config import find_config
     from edge.plantfile import PlantFileError, load_plant
     try:
-        return load_plant(args.config, getattr(args, "backend", None))
+        return load_plant(find_config("plant.yaml", args.config), getattr(args, "backend", None))
     except PlantFileError as exc:
-        for line in str(exc).splitlines():
+        from edge.yamlfile import format_problems
+        for line in format_problems(str(exc).splitlines()):
             print(f"hp-edge: {line}", file=sys.stderr)
         raise SystemExit(2) from None
 
@@ -136,7 +139,8 @@ def cmd_bench(args) -> int:
     sections = [s.strip() for s in args.only.split(",") if s.strip()]
     known = {"model": ("model.bench", "bench_model"), "simulator": ("simulator.bench", "bench_simulator"),
              "analysis": ("model.bench_analysis", "bench_analysis"),
-             "gateway": ("edge.bench_gateway", "bench_gateway")}
+             "gateway": ("edge.bench_gateway", "bench_gateway"),
+             "inputs": ("edge.bench_inputs", "bench_inputs")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",

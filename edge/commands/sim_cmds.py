@@ -42,12 +42,27 @@ def register(sub) -> None:
 
 
 def _fail(msg: str) -> int:
-    print(f"hp-edge simulate: {msg}", file=sys.stderr)
+    from edge.yamlfile import format_problems
+    for line in format_problems(msg.splitlines() or [msg]):
+        print(f"hp-edge simulate: {line}", file=sys.stderr)
     return 2
 
 
+def _check_plant_file(path) -> None:
+    """plant.yaml through the checker every command uses (edge.plantfile): unknown or duplicate
+    keys are refused here too, before the simulated plant is built from the file."""
+    from edge.plantfile import check_plant
+    from edge.yamlfile import Problems
+    from simulator.config import SimConfigError
+
+    p = Problems()
+    check_plant(p, path)
+    if p.lines:
+        raise SimConfigError("\n".join(p.lines))
+
+
 def cmd_simulate(args) -> int:
-    from simulator.config import SimConfigError, load_simulator_config
+    from simulator.config import SimConfigError, load_simulator_config, read_tags
     from simulator.faults import parse_cli_fault
     try:
         cfg = load_simulator_config(args.config)
@@ -56,6 +71,16 @@ def cmd_simulate(args) -> int:
         if args.compressors is not None:
             cfg = cfg.with_compressor_family(args.compressors)
         faults = [parse_cli_fault(f) for f in args.fault]
+        _check_plant_file(cfg.plant_file)     # the same strict check as every other command
+        served = read_tags(cfg.tags_file)
+        for text, f in zip(args.fault, faults):
+            if f.tag is not None and f.tag not in served:
+                import difflib
+                close = difflib.get_close_matches(f.tag, list(served), 1)
+                raise SimConfigError(
+                    f"--fault {text}: unknown tag {f.tag!r}"
+                    + (f" (did you mean {close[0]!r}?)" if close else "")
+                    + f"; the simulator serves {', '.join(served)}")
     except SimConfigError as exc:
         return _fail(str(exc))
     if args.export:
@@ -72,6 +97,8 @@ def cmd_simulate(args) -> int:
             res = export_history(args.days, args.export, cfg=cfg, truth_path=args.truth)
         except SimConfigError as exc:
             return _fail(str(exc))
+        except OSError as exc:
+            return _fail(f"cannot write {args.export}: {exc.strerror or exc}")
         print(json.dumps({"history": args.export, "truth": args.truth, "rows": res.rows,
                           "days": args.days, "seed": cfg.seed,
                           "compressors": cfg.truth.compressor_family, "seconds": round(res.seconds, 2)}))
@@ -111,8 +138,11 @@ async def _serve(cfg, args, faults) -> int:
             return _fail(f"cannot listen on {args.host}:{args.port}: {exc.strerror or exc}")
         except RuntimeError as exc:
             return _fail(str(exc))
-        for f in faults:
-            sim.add_fault(f)
+        try:
+            for f in faults:
+                sim.add_fault(f)
+        except SimConfigError as exc:
+            return _fail(str(exc))
         print(json.dumps({"listening": f"{args.host}:{sim.port}", "speed": sim.speed, "seed": cfg.seed,
                           "start_time": cfg.start_time, "device_id": cfg.device_id,
                           "compressors": cfg.truth.compressor_family,

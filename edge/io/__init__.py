@@ -1,0 +1,1 @@
+"""File formats at the edge of hp-edge: history CSVs (``history``)."""

@@ -1,0 +1,232 @@
+"""History CSVs: the canonical columns of SPEC §4 with a first column ``timestamp`` (ISO 8601, UTC
+when naive), as exported by SCADA systems and by ``hp-edge simulate --export``.
+
+Separator (``,`` ``;`` or tab) and decimal mark (``.`` or ``,``) are detected from the file unless
+given: the separator is the one that makes ``timestamp`` a column of the header line; a decimal
+comma is recognised in the numbers of a file separated by ``;`` or tabs. Rows whose timestamp
+cannot be read are skipped and counted, and the first one is named with its line number, its
+value and the expected format; when no row has a readable timestamp the file is refused.
+Non-numeric cells become missing values (counted per column, the first one named).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SEPARATORS = {",": "comma", ";": "semicolon", "\t": "tab"}
+DECIMALS = {".": "point", ",": "comma"}
+TIMESTAMP_FORMAT = "ISO 8601, e.g. 2024-03-01T06:00:00Z or 2024-03-01 06:00 (UTC when naive)"
+MAX_BYTES = 2_000_000_000       # larger files are refused rather than read into memory
+_MISSING_TEXT = ("", "nan", "na", "n/a", "null", "none")
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+([eE][+-]?\d+)?$")
+_DECIMAL_POINT = re.compile(r"^[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
+class HistoryError(ValueError):
+    """The file cannot be read as a history CSV; the message starts with the path."""
+
+
+@dataclass
+class History:
+    frame: object                      # pandas DataFrame, sorted, with a UTC ``timestamp``
+    skipped: dict[str, int]            # rows skipped per reason
+    non_numeric: dict[str, int]        # cells that are not numbers, per column
+    sep: str
+    decimal: str
+    first_bad_timestamp: str | None = None           # "line 5: '2024-13-01'"
+    first_non_numeric: dict[str, str] = field(default_factory=dict)   # column -> "line 7: 'x'"
+    first_ragged: str | None = None    # "line 9": first row with the wrong number of fields
+
+    def report_lines(self, path) -> list[str]:
+        """What was read, for the user (the lines ``hp-edge calibrate`` and ``replay`` print)."""
+        out = [f"{path}: {len(self.frame)} rows read"
+               + ("" if (self.sep, self.decimal) == (",", ".") else
+                  f" ({SEPARATORS[self.sep]}-separated, decimal {DECIMALS[self.decimal]})")]
+        if self.skipped:
+            parts = []
+            for k, v in self.skipped.items():
+                text = f"{k}: {v}"
+                if k == "bad timestamp" and self.first_bad_timestamp:
+                    text += f" (first at {self.first_bad_timestamp}; expected {TIMESTAMP_FORMAT})"
+                if k == "wrong number of fields" and self.first_ragged:
+                    text += f" (first at {self.first_ragged})"
+                parts.append(text)
+            out.append("  rows skipped: " + ", ".join(parts))
+        if self.non_numeric:
+            out.append("  values that are not numbers (marked missing): " + ", ".join(
+                f"{k}: {v}" + (f" (first at {self.first_non_numeric[k]})"
+                               if k in self.first_non_numeric else "")
+                for k, v in self.non_numeric.items()))
+        return out
+
+
+def _short(v: str, limit: int = 40) -> str:
+    return repr(v if len(v) <= limit else v[: limit - 3] + "...")
+
+
+def _read_text(path: Path) -> str:
+    try:
+        size = path.stat().st_size
+        if size > MAX_BYTES:
+            raise HistoryError(f"{path}: {size} bytes is more than this reader takes "
+                               f"({MAX_BYTES}); split the file")
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise HistoryError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise HistoryError(f"{path}: is a directory") from None
+    except OSError as exc:
+        raise HistoryError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if b"\x00" in raw:
+        line = raw[: raw.index(b"\x00")].count(b"\n") + 1
+        raise HistoryError(f"{path}: line {line}: a NUL byte; this is not a text file")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("cp1252", errors="replace")   # SCADA exports from Windows PCs
+
+
+def detect_format(text: str, sep: str | None = None,
+                  decimal: str | None = None) -> tuple[str, str, int]:
+    """(separator, decimal mark, 0-based index of the header line) of a history CSV's text."""
+    lines = text.splitlines()
+    header_at = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+    if header_at is None:
+        raise HistoryError("the file is empty")
+    header = lines[header_at]
+    if sep is None:
+        def fields(s):
+            return [f.strip().strip('"').strip() for f in header.split(s)]
+        with_ts = [s for s in SEPARATORS if "timestamp" in fields(s)]
+        if with_ts:
+            sep = max(with_ts, key=lambda s: len(fields(s)))
+        else:
+            seen = ", ".join(repr(f) for f in fields(max(SEPARATORS, key=lambda s: len(fields(s))))[:4])
+            raise HistoryError(f"line {header_at + 1}: no 'timestamp' column in the header (the "
+                               f"first column of a history CSV; separated by comma, semicolon "
+                               f"or tab); the header starts {seen}")
+    if decimal is None:
+        decimal = "."
+        if sep != ",":
+            comma = point = 0
+            for ln in lines[header_at + 1: header_at + 201]:
+                for cell in ln.split(sep)[1:]:
+                    cell = cell.strip().strip('"')
+                    comma += bool(_DECIMAL_COMMA.match(cell))
+                    point += bool(_DECIMAL_POINT.match(cell))
+            if comma and point:
+                raise HistoryError("numbers with a decimal comma and with a decimal point in "
+                                   "the same file; say which with --decimal")
+            decimal = "," if comma else "."
+    if sep == decimal:
+        raise HistoryError(f"the separator and the decimal mark are both {sep!r}")
+    return sep, decimal, header_at
+
+
+def read_history(path, sep: str | None = None, decimal: str | None = None,
+                 required: tuple[str, ...] | None = None) -> History:
+    """Read a history CSV (see the module docstring). ``required``: columns that must be there
+    (default: the model's, model.columns.REQUIRED). Raises HistoryError."""
+    import numpy as np
+    import pandas as pd
+
+    from model.columns import REQUIRED
+
+    path = Path(path)
+    if sep is not None and sep not in SEPARATORS:
+        raise HistoryError(f"separator {sep!r}: use one of comma ',', semicolon ';' or tab")
+    if decimal is not None and decimal not in DECIMALS:
+        raise HistoryError(f"decimal mark {decimal!r}: use '.' or ','")
+    text = _read_text(path)
+    try:
+        sep, decimal, header_at = detect_format(text, sep, decimal)
+    except HistoryError as exc:
+        raise HistoryError(f"{path}: {exc}") from None
+    # rows are split by the csv module, so that each keeps its line number and a row with more
+    # or fewer fields than the header (shifted or cut: which value belongs to which column is
+    # unknown) is skipped and named instead of being padded or refused wholesale
+    reader = csv.reader(io.StringIO(text), delimiter=sep)
+    names: list[str] | None = None
+    rows, lines, ragged = [], [], []
+    try:
+        for row in reader:
+            if not any(c.strip() for c in row):
+                continue
+            if names is None:
+                names = [c.strip() for c in row]
+                continue
+            if len(row) == len(names):
+                rows.append(row)
+                lines.append(reader.line_num)
+            else:
+                ragged.append(reader.line_num)
+    except csv.Error as exc:
+        raise HistoryError(f"{path}: line {reader.line_num}: cannot read as CSV: "
+                           f"{str(exc)[:200]}") from None
+    names = names or []
+    if "timestamp" not in names:
+        raise HistoryError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
+    dup = sorted({c for c in names if names.count(c) > 1})
+    if dup:
+        raise HistoryError(f"{path}: column(s) {', '.join(dup)} appear more than once")
+    required = REQUIRED if required is None else required
+    missing = [c for c in required if c not in names]
+    if missing:   # without any of these every row would be unusable: say which, up front
+        raise HistoryError(f"{path}: missing column(s) {', '.join(missing)} "
+                           "(canonical history columns, SPEC §4)")
+    df = pd.DataFrame(rows, columns=names, dtype=str)
+    line_of = np.asarray(lines, dtype=int)
+    skipped: dict[str, int] = {}
+    first_ragged = None
+    if ragged:
+        skipped["wrong number of fields"] = len(ragged)
+        first_ragged = f"line {ragged[0]}"
+    text_ts = df["timestamp"].str.strip()
+    ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601")
+    bad = ts.isna().to_numpy()
+    first_bad = None
+    if bad.any():
+        i = int(bad.argmax())
+        first_bad = f"line {line_of[i]}: {_short(text_ts.iloc[i])}"
+        if bad.all():
+            raise HistoryError(f"{path}: no row has a readable timestamp; the first, at "
+                               f"{first_bad}, is not {TIMESTAMP_FORMAT}")
+        skipped["bad timestamp"] = int(bad.sum())
+    df, line_of = df.loc[~bad].copy(), line_of[~bad]
+    df["timestamp"] = ts[~bad]
+    order = df["timestamp"].argsort(kind="stable").to_numpy()
+    df, line_of = df.iloc[order], line_of[order]
+    dup_ts = df["timestamp"].duplicated(keep="first").to_numpy()
+    if dup_ts.any():
+        skipped["duplicate timestamp"] = int(dup_ts.sum())
+        df, line_of = df.loc[~dup_ts], line_of[~dup_ts]
+    non_numeric: dict[str, int] = {}
+    first_nn: dict[str, str] = {}
+    for c in df.columns:
+        if c in ("timestamp", "quality"):
+            continue
+        cells = df[c].str.strip()
+        if decimal == ",":   # a point is then no decimal mark (perhaps thousands): not a number
+            numeric_text = cells.where(~cells.str.contains(".", regex=False), "x")
+            numeric_text = numeric_text.str.replace(",", ".", regex=False)
+        else:
+            numeric_text = cells
+        num = pd.to_numeric(numeric_text, errors="coerce")
+        nn = (num.isna() & ~cells.str.lower().isin(_MISSING_TEXT)).to_numpy()
+        if nn.any():
+            non_numeric[c] = int(nn.sum())
+            i = int(nn.argmax())
+            first_nn[c] = f"line {line_of[i]}: {_short(cells.iloc[i])}"
+        df[c] = num
+    return History(df.reset_index(drop=True), skipped, non_numeric, sep, decimal, first_bad,
+                   first_nn, first_ragged)
+
+
+def read_history_csv(path, sep: str | None = None, decimal: str | None = None):
+    """(history DataFrame sorted by time with a UTC ``timestamp`` column, skipped rows per
+    reason, non-numeric cells per column). Raises HistoryError."""
+    h = read_history(path, sep, decimal)
+    return h.frame, h.skipped, h.non_numeric

@@ -1,0 +1,188 @@
+"""History CSVs (issue 9 item 4) and the commissioning plausibility limits (item 5).
+
+The CSVs are written by pandas from a small simulated commissioning export, in the formats SCADA
+exports use (comma/point, semicolon/comma, tab); the reader must give the same frame for each.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from edge.cli import main
+from edge.io.history import HistoryError, read_history, read_history_csv
+
+
+@pytest.fixture(scope="module")
+def clean_csv(tmp_path_factory):
+    """60 minutes of clean-evaporator operation from the simulator (its own export)."""
+    from simulator.config import load_simulator_config
+    from simulator.export import export_history
+
+    cfg = load_simulator_config()
+    clean = cfg.replace(fouling=dataclasses.replace(
+        cfg.fouling, R_th_f_initial_K_per_kW=0.0, R_th_f_inf_K_per_kW=0.0, CF_dp_f_initial=1.0,
+        CF_dp_f_inf=1.0), faults=())
+    path = tmp_path_factory.mktemp("history") / "clean.csv"
+    export_history(60 / 1440, path, cfg=clean)
+    return path
+
+
+@pytest.mark.parametrize("sep, decimal", [(";", ","), ("\t", "."), ("\t", ","), (";", ".")])
+def test_separator_and_decimal_mark_are_detected(clean_csv, tmp_path, sep, decimal):
+    ref = read_history(clean_csv)
+    assert (ref.sep, ref.decimal) == (",", ".")
+    other = tmp_path / "other.csv"
+    pd.read_csv(clean_csv).to_csv(other, index=False, sep=sep, decimal=decimal)
+    got = read_history(other)
+    assert (got.sep, got.decimal) == (sep, decimal)
+    pd.testing.assert_frame_equal(got.frame, ref.frame)
+    assert got.skipped == {} and got.non_numeric == {}
+    # and when given explicitly, the same
+    again = read_history(other, sep=sep, decimal=decimal)
+    pd.testing.assert_frame_equal(again.frame, ref.frame)
+
+
+def test_decimal_comma_with_commas_as_separator_needs_saying_so(tmp_path):
+    path = tmp_path / "mixed.csv"
+    path.write_text("timestamp;a;b\n2024-03-01T00:00Z;1,5;2.5\n")
+    with pytest.raises(HistoryError, match="decimal comma and with a decimal point in the same "
+                                           "file; say which with --decimal"):
+        read_history(path, required=())
+    h = read_history(path, decimal=",", required=())
+    assert h.frame["a"].iloc[0] == 1.5 and np.isnan(h.frame["b"].iloc[0])
+    assert h.first_non_numeric == {"b": "line 2: '2.5'"}
+
+
+def test_the_first_bad_timestamp_is_named_with_line_value_and_format(clean_csv, tmp_path):
+    lines = clean_csv.read_text().splitlines()
+    lines[4] = "2024-13-01 00:03" + lines[4][lines[4].index(","):]     # file line 5
+    lines[9] = "yesterday" + lines[9][lines[9].index(","):]
+    path = tmp_path / "bad.csv"
+    path.write_text("\n".join(lines) + "\n")
+    h = read_history(path)
+    assert len(h.frame) == 58 and h.skipped == {"bad timestamp": 2}
+    assert h.report_lines(path)[1] == (
+        "  rows skipped: bad timestamp: 2 (first at line 5: '2024-13-01 00:03'; expected ISO "
+        "8601, e.g. 2024-03-01T06:00:00Z or 2024-03-01 06:00 (UTC when naive))")
+    everything_bad = tmp_path / "dates.csv"
+    everything_bad.write_text("\n".join(
+        [lines[0]] + ["01.03.2024 00:0%d" % i + ln[ln.index(","):]
+                      for i, ln in enumerate(lines[1:4])]) + "\n")
+    with pytest.raises(HistoryError) as info:
+        read_history(everything_bad)
+    assert str(info.value) == (
+        f"{everything_bad}: no row has a readable timestamp; the first, at line 2: "
+        "'01.03.2024 00:00', is not ISO 8601, e.g. 2024-03-01T06:00:00Z or 2024-03-01 06:00 "
+        "(UTC when naive)")
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("a;b;c\n1;2;3\n", "line 1: no 'timestamp' column in the header (the first column of a "
+                       "history CSV; separated by comma, semicolon or tab); the header starts "
+                       "'a', 'b', 'c'"),
+    ("", "the file is empty"),
+    ("timestamp,a\n2024-03-01,1\x00\n", "line 2: a NUL byte; this is not a text file"),
+    ("timestamp,a,a\n2024-03-01,1,2\n", "column(s) a appear more than once"),
+])
+def test_unreadable_files_are_named(tmp_path, text, fragment):
+    path = tmp_path / "x.csv"
+    path.write_text(text)
+    with pytest.raises(HistoryError) as info:
+        read_history(path, required=())
+    assert str(info.value) == f"{path}: {fragment}"
+
+
+def test_read_history_csv_keeps_its_contract(clean_csv):
+    frame, skipped, non_numeric = read_history_csv(clean_csv)
+    assert str(frame["timestamp"].dt.tz) == "UTC" and frame["timestamp"].is_monotonic_increasing
+    assert skipped == {} and non_numeric == {} and len(frame) == 60
+
+
+def test_cli_reads_a_semicolon_export(clean_csv, tmp_path, capsys):
+    semi = tmp_path / "scada.csv"
+    pd.read_csv(clean_csv).to_csv(semi, index=False, sep=";", decimal=",")
+    rc = main(["optimize", str(semi), "--window", "2024-03-01T00:30/2024-03-01T00:40",
+               "--state-dir", str(tmp_path / "state"), "--sep", ";", "--decimal", ","])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert out.splitlines()[0] == f"{semi}: 60 rows read (semicolon-separated, decimal comma)"
+
+
+# ------------------------------------------------------- item 5: degenerate commissioning
+
+
+def test_calibrate_initial_refuses_a_degenerate_state_unless_forced(clean_csv, tmp_path, capsys):
+    """The campaign's case: V_source and W_LS swapped gave NRMSE 13 %, three factors at their
+    bound and dp_clean R^2 -49, saved with exit 0."""
+    df = pd.read_csv(clean_csv)
+    df[["V_source", "W_LS"]] = df[["W_LS", "V_source"]].to_numpy()
+    swapped = tmp_path / "swapped.csv"
+    df.to_csv(swapped, index=False)
+    state = tmp_path / "state"
+    rc = main(["calibrate", "initial", str(swapped), "--state-dir", str(state)])
+    err = capsys.readouterr().err.splitlines()
+    assert rc == 2
+    assert err[0] == ("hp-edge calibrate initial: not saved: the result fails the plausibility "
+                      "limits of plant.yaml calibration.initial.limits (wrong input? e.g. "
+                      "swapped columns; --force saves it anyway):")
+    assert any("calibration objective" in ln and "exceeds max_objective_pct 5 %" in ln
+               for ln in err), err
+    assert any("parameters at a bound" in ln and "more than max_parameters_at_bound 1" in ln
+               for ln in err), err
+    assert any("clean pressure-drop fit R^2" in ln and "is below min_dp_clean_r2 0" in ln
+               for ln in err), err
+    assert not state.exists() or list(state.iterdir()) == []       # nothing saved
+    rc = main(["calibrate", "initial", str(swapped), "--state-dir", str(state), "--force",
+               "--json"])
+    captured = capsys.readouterr()
+    assert rc == 0
+    assert "WARNING (saved with --force): calibration objective" in captured.err
+    saved = json.loads((state / "initial_calibration.json").read_text())
+    assert saved["objective"] > 0.05
+
+
+def test_commissioning_limits_are_configurable_and_checked():
+    from edge.commissioning import CommissioningLimits
+
+    assert CommissioningLimits.from_config({}) == CommissioningLimits(5.0, 1, 0.0)
+    lim = CommissioningLimits.from_config({"calibration": {"initial": {"limits": {
+        "max_objective_pct": 2, "max_parameters_at_bound": 0, "min_dp_clean_r2": 0.5}}}})
+    assert lim == CommissioningLimits(2, 0, 0.5)
+    with pytest.raises(ValueError, match=r"key 'calibration.initial.limits.max_objective': "
+                                         r"unknown \(known: max_objective_pct"):
+        CommissioningLimits.from_config({"calibration": {"initial": {"limits": {
+            "max_objective": 2}}}})
+
+    @dataclasses.dataclass
+    class Res:
+        objective: float
+        nrmse: dict
+        at_bound: list
+        params: dict
+        bounds: dict
+
+    @dataclasses.dataclass
+    class Dp:
+        r2: float
+
+    ok = Res(0.004, {"Q_sink": 0.004}, ["CF_DSH"], {"CF_DSH": 0.5}, {"CF_DSH": (0.5, 2.0)})
+    assert CommissioningLimits().failures(ok, Dp(0.16)) == []
+    assert lim.failures(ok, Dp(0.16)) == [
+        "1 parameters at a bound (CF_DSH 0.5 (bounds 0.5..2)), more than "
+        "max_parameters_at_bound 0",
+        "clean pressure-drop fit R^2 0.16 is below min_dp_clean_r2 0.5 (flow and pressure "
+        "columns do not explain each other)"]
+
+
+def test_rows_with_the_wrong_number_of_fields_are_skipped_and_named(tmp_path):
+    path = tmp_path / "ragged.csv"
+    path.write_text("timestamp,a,b\n2024-03-01T00:00Z,1,2\n2024-03-01T00:01Z,1,2,3\n"
+                    "2024-03-01T00:02Z,4\n\n2024-03-01T00:03Z,5,6\n")
+    h = read_history(path, required=())
+    assert h.frame["a"].tolist() == [1.0, 5.0] and h.frame["b"].tolist() == [2.0, 6.0]
+    assert h.skipped == {"wrong number of fields": 2}
+    assert h.report_lines(path)[1] == "  rows skipped: wrong number of fields: 2 (first at line 3)"

@@ -54,8 +54,18 @@ PLANT_SCHEMA: dict = {
         "fouling": _CALIBRATION_KIND,
         "replay": dict.fromkeys(("window_hours", "min_samples", "initial_minutes",
                                  "cip_off_minutes", "cip_windows", "max_gap_minutes", "optimize",
-                                 "dp_form")),
+                                 "dp_form", "hindsight")),
+        "heat_balance_limit_pct": None,
     },
+    # the set-point advice (model.analysis.advice.AdviceSettings) and the compressor learning
+    # (model.analysis.compressors.LearningSettings): every key optional
+    "advice": dict.fromkeys(("representative_points", "check_rows", "uncertainty_draws",
+                             "confidence_k", "min_coverage_share", "max_curve_residual",
+                             "dead_band_pct", "inside_tolerance", "neighbour_bar", "seed")),
+    "compressor_learning": dict.fromkeys((
+        "enabled", "half_life_days", "prior_weight", "min_samples", "bin_pi", "bin_n",
+        "min_bin_weight", "margin_pi", "margin_n", "T_c_location", "subcooling_threshold_K",
+        "eta_range")),
     "surrogate": dict.fromkeys(("reference_p_m_sp_barg", "fouling_levels_K_per_kW",
                                 "points_per_level", "T_source_in_C", "source_cooling_K",
                                 "T_sink_in_C", "V_source_m3h", "V_sink_m3h", "seed")),
@@ -93,19 +103,23 @@ def _value_problems(d: dict) -> list[str]:
         return str(exc).splitlines()
     from edge.commissioning import CommissioningLimits
     from model.calibration import CalibrationError, spec_from_config
-    from model.replay import ReplayError, ReplaySettings
+    from model.analysis.advice import AdviceError
+    from model.analysis.chain import ChainSettings
+    from model.analysis.compressors import LearningError
+    from model.analysis.replay import ReplayError, ReplaySettings
     from model.surrogate import SurrogateError, design_from_config
 
     checks = [lambda: spec_from_config(params.extra, "initial"),
               lambda: spec_from_config(params.extra, "fouling"),
               lambda: ReplaySettings.from_config(params.extra),
               lambda: design_from_config(params.extra),
-              lambda: CommissioningLimits.from_config(params.extra)]
+              lambda: CommissioningLimits.from_config(params.extra),
+              lambda: ChainSettings.from_config(params.extra)]
     for check in checks:
         try:
             check()
-        except (CalibrationError, ReplayError, SurrogateError, ValueError, TypeError,
-                OverflowError) as exc:
+        except (CalibrationError, ReplayError, SurrogateError, AdviceError, LearningError,
+                ValueError, TypeError, OverflowError) as exc:
             out.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
     return out
 

@@ -262,7 +262,9 @@ class PlantParams:
             CF_DSH=collect(calnum, "CF_DSH", 1.0), CF_con=collect(calnum, "CF_con", 1.0), CF_SC=collect(calnum, "CF_SC", 1.0),
             CF_eva=collect(calnum, "CF_eva", 1.0), R_th_f=collect(calnum, "R_th_f_K_per_kW", 0.0) * 1e-3,
             CF_dp_f=collect(calnum, "CF_dp_f", 1.0),
-            extra={k: v for k, v in d.items() if k in ("calibration", "optimization", "surrogate")},
+            extra={k: v for k, v in d.items()
+                   if k in ("calibration", "optimization", "surrogate", "advice", "compressor_learning",
+                            "cip")},
         )
         if errors:
             raise ParamError("\n".join(errors))

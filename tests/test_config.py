@@ -384,14 +384,14 @@ def test_block_moved_onto_a_plc_register_is_refused_even_without_its_tag(cfgdir)
     edit(cfgdir, "tags.yaml", lambda d: d["tags"].pop("p_m_sp"))
     edit(cfgdir, "gateway.yaml", lambda d: d["advisory"].update(start=110))
     got = problems()
-    assert ("config/gateway.yaml: section 'advisory': key 'start': block holding 110..141 "
+    assert ("config/gateway.yaml: section 'advisory': key 'start': block holding 110..173 "
             "overlaps reserved holding 0..999 (registers the PLC owns; the gateway writes only "
             "the advisory block)") in got
     # and with the tag present but no reserved list, the tag itself is PLC-owned
     edit(cfgdir, "gateway.yaml", lambda d: d.update(reserved=[]))
     shutil.copy(REPO / "config" / "tags.yaml", cfgdir)
     assert problems() == [
-        "config/gateway.yaml: section 'advisory': key 'start': block holding 110..141 overlaps "
+        "config/gateway.yaml: section 'advisory': key 'start': block holding 110..173 overlaps "
         "tag 'p_m_sp' (holding 110..110) of config/tags.yaml"]
 
 
@@ -487,7 +487,7 @@ def test_plant_schema_matches_its_readers():
     accept, or a valid key would be refused (or an invalid one slip through)."""
     from edge.plantfile import PLANT_SCHEMA
     from model.calibration import CalibrationError, spec_from_config
-    from model.replay import ReplaySettings
+    from model.analysis.replay import ReplaySettings
     from model.surrogate import DEFAULT_DESIGN
 
     assert set(PLANT_SCHEMA["surrogate"]) == set(DEFAULT_DESIGN)

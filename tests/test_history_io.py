@@ -117,7 +117,8 @@ def test_cli_reads_a_semicolon_export(clean_csv, tmp_path, capsys):
 
 def test_calibrate_initial_refuses_a_degenerate_state_unless_forced(clean_csv, tmp_path, capsys):
     """The campaign's case: V_source and W_LS swapped gave NRMSE 13 %, three factors at their
-    bound and dp_clean R^2 -49, saved with exit 0."""
+    bound and dp_clean R^2 -49, saved with exit 0. (With the compressor curves learned from the
+    same data first, fewer factors run to a bound; the objective and the dp fit still fail.)"""
     df = pd.read_csv(clean_csv)
     df[["V_source", "W_LS"]] = df[["W_LS", "V_source"]].to_numpy()
     swapped = tmp_path / "swapped.csv"
@@ -130,8 +131,6 @@ def test_calibrate_initial_refuses_a_degenerate_state_unless_forced(clean_csv, t
                       "limits of plant.yaml calibration.initial.limits (wrong input? e.g. "
                       "swapped columns; --force saves it anyway):")
     assert any("calibration objective" in ln and "exceeds max_objective_pct 5 %" in ln
-               for ln in err), err
-    assert any("parameters at a bound" in ln and "more than max_parameters_at_bound 1" in ln
                for ln in err), err
     assert any("clean pressure-drop fit R^2" in ln and "is below min_dp_clean_r2 0" in ln
                for ln in err), err

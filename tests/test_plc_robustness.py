@@ -132,9 +132,9 @@ def test_a_reply_to_another_function_is_not_data(reply, fragment):
     (lambda a, n, pdu: struct.pack(">BHH", 6, a, struct.unpack(">H", pdu[6:8])[0]),
      "the reply is for function 6, not 16"),
     (lambda a, n, pdu: struct.pack(">BHH", 16, a, n - 1),
-     "the reply confirms 31 registers at 1000"),
+     "the reply confirms 63 registers at 1000"),
     (lambda a, n, pdu: struct.pack(">BHH", 16, a + 1, n),
-     "the reply confirms 32 registers at 1001"),
+     "the reply confirms 64 registers at 1001"),
 ])
 def test_a_write_is_confirmed_only_by_its_own_echo(reply, fragment):
     words = encode_advisory(CFG.advisory, {}, set(), heartbeat=1)
@@ -251,11 +251,11 @@ def test_write_guard_holds_when_the_tag_map_is_incomplete():
 
     requests, moved_block, direct, over_tag = run(scenario())
     assert [r for r in requests if r[1] in (6, 16)] == []           # nothing written, ever
-    assert str(moved_block) == ("refusing to write holding registers 110..141: they overlap "
+    assert str(moved_block) == ("refusing to write holding registers 110..173: they overlap "
                                 "reserved holding 0..999 (PLC-owned)")
     assert str(direct) == ("refusing to write holding registers 110..110: writes are allowed "
-                           "only inside the advisory block holding 1000..1031")
-    assert str(over_tag) == ("refusing to write holding registers 1000..1031: they overlap tag "
+                           "only inside the advisory block holding 1000..1063")
+    assert str(over_tag) == ("refusing to write holding registers 1000..1063: they overlap tag "
                              "'pm' (holding 1005..1005, PLC-owned)")
     assert CFG.reserved == (Reserved("holding", 0, 999),)
 

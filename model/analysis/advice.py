@@ -36,7 +36,7 @@ from ..batch import INPUT_COLUMNS
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, groups, representative,
                         search, window_range)
 from ..params import PlantParams
-from .compressors import STAGES, CompressorLearner, _to_poly
+from .compressors import STAGES, CompressorLearner
 
 
 class AdviceError(ValueError):
@@ -150,12 +150,11 @@ def _feasible(learner: CompressorLearner | None, params: PlantParams, offsets: d
 
 
 def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> PlantParams:
+    """``params`` with one uncertainty draw of the learned curves (their drive factors kept)."""
     kw = {}
     for st in STAGES:
-        comp = params.comp_LS if st == "LS" else params.comp_HS
-        d = {c: tuple(_to_poly(a)) for c, a in draw.get(st, {}).items()}
-        if d:
-            kw[f"comp_{st}"] = comp.replace(**d)
+        if draw.get(st):
+            kw[f"comp_{st}"] = learner.compressor(st, delta=draw[st])
     return params.replace(**kw)
 
 

@@ -67,6 +67,9 @@ class LearningSettings:
     T_c_location: str = "auto"        # auto | condenser_outlet | subcooler_outlet
     subcooling_threshold_K: float = 1.5   # auto: T_sat(p_c) - T_c above this -> subcooler outlet
     eta_range: tuple = (0.3, 1.0)     # observations outside are sensor trouble, not compressor data
+    local: bool = True                # locally weighted curves where the data is (see LocalCurves)
+    local_bandwidth_bins: float = 2.0 # kernel width of the local fits, in bins
+    local_prior_weight: float = 20.0  # samples pulling a local fit toward the global one
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "LearningSettings":
@@ -282,6 +285,13 @@ def _to_poly(a: np.ndarray) -> tuple[float, ...]:
     return (float(c_1), float(c_p), float(c_n), float(c_pp), float(c_pn), float(c_nn))
 
 
+def _zvalue(a, pi: float, n: float) -> float:
+    """Scaled-basis polynomial ``a`` at one point."""
+    zp = (pi - _Z[0]) / _Z[1]
+    zn = (n - _Z[2]) / _Z[3]
+    return a[0] + a[1] * zp + a[2] * zn + a[3] * zp * zp + a[4] * zp * zn + a[5] * zn * zn
+
+
 def _poly_matrix() -> np.ndarray:
     """Linear map M with poly = M @ a (so a covariance transforms as M C M^T)."""
     return np.array([_to_poly(e) for e in np.eye(6)]).T
@@ -353,6 +363,202 @@ class _Coverage:
                    {(int(a), int(b)): float(w) for a, b, w in d["bins"]})
 
 
+@dataclass
+class _BinStats:
+    """Decaying sufficient statistics of one curve per coverage bin (for the local fits)."""
+    bin_pi: float
+    bin_n: float
+    A: dict = field(default_factory=dict)      # bin -> (6, 6)
+    b: dict = field(default_factory=dict)      # bin -> (6,)
+
+    def decay(self, f: float) -> None:
+        for k in self.A:
+            self.A[k] *= f
+            self.b[k] *= f
+
+    def add(self, pi: np.ndarray, n: np.ndarray, X: np.ndarray, y: np.ndarray) -> None:
+        ip = np.floor(pi / self.bin_pi).astype(int)
+        jn = np.floor(n / self.bin_n).astype(int)
+        keys = list(zip(ip.tolist(), jn.tolist()))
+        for key in set(keys):
+            m = np.array([k == key for k in keys])
+            Xm, ym = X[m], y[m]
+            if key not in self.A:
+                self.A[key], self.b[key] = np.zeros((6, 6)), np.zeros(6)
+            self.A[key] += Xm.T @ Xm
+            self.b[key] += Xm.T @ ym
+
+    def arrays(self):
+        keys = sorted(self.A)
+        if not keys:
+            return np.zeros((0, 2)), np.zeros((0, 6, 6)), np.zeros((0, 6))
+        c = np.array([((a + 0.5) * self.bin_pi, (b + 0.5) * self.bin_n) for a, b in keys])
+        return c, np.array([self.A[k] for k in keys]), np.array([self.b[k] for k in keys])
+
+    def to_dict(self) -> dict:
+        iu = np.triu_indices(6)
+        return {"bins": [[a, b, self.A[(a, b)][iu].tolist(), self.b[(a, b)].tolist()]
+                         for a, b in sorted(self.A)]}
+
+    @classmethod
+    def from_dict(cls, d: dict, bin_pi: float, bin_n: float) -> "_BinStats":
+        out = cls(bin_pi, bin_n)
+        iu = np.triu_indices(6)
+        for a, b, tri, vec in d.get("bins", []):
+            A = np.zeros((6, 6))
+            A[iu] = tri
+            A = A + A.T - np.diag(np.diag(A))
+            out.A[(int(a), int(b))] = A
+            out.b[(int(a), int(b))] = np.array(vec, dtype=float)
+        return out
+
+
+class LocalCurves:
+    """Locally weighted quadratic curves on a grid of nodes over the covered region.
+
+    A single quadratic in (pi, n) over all the data misses a curve whose shape it cannot follow
+    (a peak between two clusters of operation) by up to ~0.007 in eta_is, which moved the optimum
+    by a bar on the simulator's 'speed_peak' plant. At each node the same polynomial form is fitted
+    to the data nearby only (Gaussian weights over the coverage bins, ``local_bandwidth_bins`` wide),
+    pulled toward the global fit with ``local_prior_weight`` samples where the nearby data is thin;
+    between nodes the four surrounding local polynomials are blended bilinearly. Outside the grid
+    (where the data is not) the global fit answers.
+    """
+
+    def __init__(self, bins: "_BinStats", global_coef: np.ndarray, global_A: np.ndarray,
+                 coverage: "_Coverage", settings: "LearningSettings") -> None:
+        s = settings
+        centres, As, bs = bins.arrays()
+        self.ok = False
+        cov = coverage.centers(s.min_bin_weight)
+        if len(centres) == 0 or len(cov) == 0:
+            return
+        self.dpi, self.dn = bins.bin_pi, bins.bin_n
+        h = np.array([s.local_bandwidth_bins * self.dpi, s.local_bandwidth_bins * self.dn])
+        lo = cov.min(axis=0) - np.array([s.margin_pi, s.margin_n])
+        hi = cov.max(axis=0) + np.array([s.margin_pi, s.margin_n])
+        self.p0 = math.floor(lo[0] / self.dpi) * self.dpi
+        self.n0 = math.floor(lo[1] / self.dn) * self.dn
+        npi = int(math.ceil((hi[0] - self.p0) / self.dpi)) + 2
+        nn = int(math.ceil((hi[1] - self.n0) / self.dn)) + 2
+        P, N = np.meshgrid(self.p0 + self.dpi * np.arange(npi), self.n0 + self.dn * np.arange(nn),
+                           indexing="ij")
+        nodes = np.column_stack([P.ravel(), N.ravel()])
+        # nodes the data reaches (within a margin of a covered bin); others fall back to global
+        scale = np.array([s.margin_pi, s.margin_n])
+        half = 0.5 * np.array([coverage.bin_pi, coverage.bin_n])
+        gap = np.maximum(np.abs(nodes[:, None, :] - cov[None, :, :]) - half, 0.0) / scale
+        near = np.sqrt((gap ** 2).sum(axis=2)).min(axis=1) <= 1.5
+        coef = np.full((len(nodes), 6), np.nan)
+        w_all = np.exp(-0.5 * (((nodes[:, None, :] - centres[None, :, :]) / h) ** 2).sum(axis=2))
+        w_all[w_all < 1e-4] = 0.0
+        G = global_A / max(np.trace(global_A) / 6.0, 1e-300)      # normalised global precision
+        for k in np.flatnonzero(near):
+            w = w_all[k]
+            A = np.tensordot(w, As, axes=1)
+            if np.trace(A) <= 0:
+                continue
+            mu = s.local_prior_weight
+            A_tot = A + mu * G
+            b_tot = np.tensordot(w, bs, axes=1) + mu * G @ global_coef
+            try:
+                coef[k] = np.linalg.solve(A_tot, b_tot)
+            except np.linalg.LinAlgError:
+                continue
+        self.coef = coef.reshape(npi, nn, 6)
+        self.valid = np.isfinite(self.coef).all(axis=2)
+        self.global_coef = global_coef
+        self.ok = bool(self.valid.any())
+
+    def value(self, pi: float, n: float) -> float | None:
+        """The local curve at (pi, n), None outside the grid's valid nodes."""
+        if not (self.ok and math.isfinite(pi) and math.isfinite(n)):
+            return None
+        x = (pi - self.p0) / self.dpi
+        y = (n - self.n0) / self.dn
+        i, j = int(math.floor(x)), int(math.floor(y))
+        if not (0 <= i < self.coef.shape[0] - 1 and 0 <= j < self.coef.shape[1] - 1):
+            return None
+        fx, fy = x - i, y - j
+        zp = (pi - _Z[0]) / _Z[1]
+        zn = (n - _Z[2]) / _Z[3]
+        basis = np.array([1.0, zp, zn, zp * zp, zp * zn, zn * zn])
+        # a node without a local fit contributes the global curve: continuous where the local
+        # region ends
+        c = np.zeros(6)
+        for (a, b), wgt in (((i, j), (1 - fx) * (1 - fy)), ((i + 1, j), fx * (1 - fy)),
+                            ((i, j + 1), (1 - fx) * fy), ((i + 1, j + 1), fx * fy)):
+            c += wgt * (self.coef[a, b] if self.valid[a, b] else self.global_coef)
+        return float(c @ basis)
+
+
+@dataclass(frozen=True)
+class LearnedCompressor(Compressor):
+    """A compressor whose learned curves are evaluated locally (``LocalCurves``) where the data
+    is, and by the global polynomial (the inherited coefficients) elsewhere."""
+    local_is: object = field(default=None, compare=False, hash=False, repr=False)
+    local_vol: object = field(default=None, compare=False, hash=False, repr=False)
+    delta_is: tuple | None = None      # an uncertainty draw: scaled-basis coefficients added
+    delta_vol: tuple | None = None
+
+    def eta_is_at(self, pi: float, n: float) -> float:
+        v = self.local_is.value(pi, n) if self.local_is is not None else None
+        v = v if v is not None else Compressor.eta_is_at(self, pi, n)
+        return v + _zvalue(self.delta_is, pi, n) if self.delta_is is not None else v
+
+    def eta_vol_at(self, pi: float, n: float) -> float:
+        v = self.local_vol.value(pi, n) if self.local_vol is not None else None
+        v = v if v is not None else Compressor.eta_vol_at(self, pi, n)
+        return v + _zvalue(self.delta_vol, pi, n) if self.delta_vol is not None else v
+
+    def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
+        """As Compressor.speed_for_flow (same contract), by Newton with a numerical derivative:
+        phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume), continued linearly beyond the
+        speed bounds."""
+        if self.local_vol is None or not self.local_vol.ok:
+            return Compressor.speed_for_flow(self, m, rho_suc, pi, n0)
+        target = m / (rho_suc * self.swept_volume)
+        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
+        eps = 1e-6
+
+        def phi(n: float) -> tuple[float, float]:
+            f = self.eta_vol_at(pi, n) * n
+            h = -eps if n >= n_hi else eps       # one-sided inside the speed range
+            return f, (self.eta_vol_at(pi, n + h) * (n + h) - f) / h
+
+        for edge in (n_lo, n_hi):
+            if phi(edge)[1] <= 0.0:
+                raise ValueError(f"volumetric-efficiency curve gives a flow that does not rise with "
+                                 f"speed at pressure ratio {pi:.3f}, n={edge:.3f}")
+        f_hi, d_hi = phi(n_hi)
+        if target > f_hi:
+            n = n_hi + (target - f_hi) / d_hi
+            return n, target / n
+        f_lo, d_lo = phi(n_lo)
+        if target < f_lo:
+            n = n_lo + (target - f_lo) / d_lo
+            if n <= 0.0:
+                raise ValueError(f"flow {m:.4g} kg/s is too small for the compressor curve")
+            return n, target / n
+        a, b = n_lo, n_hi
+        n = min(max(n0, n_lo), n_hi)
+        for _ in range(60):
+            f, df = phi(n)
+            if f > target:
+                b = n
+            else:
+                a = n
+            step = (f - target) / df if df > 0 else 0.0
+            nn = n - step
+            if not a <= nn <= b:
+                nn = 0.5 * (a + b)
+            if abs(nn - n) < 1e-13:
+                n = nn
+                break
+            n = nn
+        return n, target / n
+
+
 class CompressorLearner:
     """Learns eta_is and eta_vol (per stage) and the drive factors from observations.
 
@@ -363,7 +569,9 @@ class CompressorLearner:
         self.s = settings or LearningSettings()
         self.prior = {"LS": prior.comp_LS, "HS": prior.comp_HS}
         self.stats = {(st, c): _Stats() for st in STAGES for c in CURVES}
+        self.bins = {(st, c): _BinStats(self.s.bin_pi, self.s.bin_n) for st in STAGES for c in CURVES}
         self.coverage = {st: _Coverage(self.s.bin_pi, self.s.bin_n) for st in STAGES}
+        self._local: dict = {}
         self.drive = {st: [0.0, 0.0] for st in STAGES}          # decaying sum w*x, sum w
         self.subcooling = [0.0, 0.0]                             # decaying sum, weight
         self.t_last: float | None = None
@@ -398,6 +606,8 @@ class CompressorLearner:
             f = 0.5 ** ((t_now - self.t_last) / (self.s.half_life_days * DAY_S))
             for v in self.stats.values():
                 v.decay(f)
+            for v in self.bins.values():
+                v.decay(f)
             for v in self.coverage.values():
                 v.decay(f)
             for v in self.drive.values():
@@ -428,6 +638,7 @@ class CompressorLearner:
                         k = min(1.0, len(r) / max(st.w + len(r), 1.0))
                         st.rho1 = (1 - k) * st.rho1 + k * max(0.0, min(rho, 0.98))
                 st.add(X, y[ok])
+                self.bins[(stage, curve)].add(pi[ok], n[ok], X, y[ok])
                 if curve == "eta_is":
                     used = max(used, int(ok.sum()))
             ok = np.isfinite(pi) & np.isfinite(n) & np.isfinite(obs[f"eta_is_{stage}"].to_numpy(dtype=float))
@@ -444,6 +655,7 @@ class CompressorLearner:
             self.subcooling[1] += float(len(sub))
         self.n_seen += used
         self._fit_cache = None
+        self._local = {}
         return used
 
     def freeze_commissioning(self) -> None:
@@ -495,26 +707,46 @@ class CompressorLearner:
             return "condenser_outlet"
         return "subcooler_outlet" if s / w > self.s.subcooling_threshold_K else "condenser_outlet"
 
-    def compressor(self, stage: str, coef: dict | None = None) -> Compressor:
-        """The stage's Compressor with the learned curves (the prior's where not learned yet) and
-        drive factor. ``coef`` overrides scaled-basis coefficients (uncertainty draws)."""
+    def local_curves(self, stage: str, curve: str) -> LocalCurves | None:
+        """The locally weighted curve of a learned (stage, curve), cached until the next update."""
+        if not (self.s.local and self.learned(stage, curve)):
+            return None
+        key = (stage, curve)
+        if key not in self._local:
+            ps, st = self._prior_stats[key], self.stats[key]
+            lc = LocalCurves(self.bins[key], self._coef(stage, curve), ps.A + st.A,
+                             self.coverage[stage], self.s)
+            self._local[key] = lc if lc.ok else None
+        return self._local[key]
+
+    def compressor(self, stage: str, delta: dict | None = None) -> Compressor:
+        """The stage's Compressor with the learned curves (the prior's where not learned yet;
+        locally weighted where the data is) and drive factor. ``delta``: scaled-basis coefficient
+        differences added to the learned curves (an uncertainty draw)."""
         comp = self.prior[stage]
         kw = {}
         for curve in CURVES:
-            if coef is not None and curve in coef:
-                kw[curve] = _to_poly(coef[curve])
-            elif self.learned(stage, curve):
+            if self.learned(stage, curve):
                 kw[curve] = _to_poly(self._coef(stage, curve))
         kw["drive_factor"] = self.drive_factor(stage)
-        return comp.replace(**kw)
+        base = comp.replace(**kw)
+        local = {c: self.local_curves(stage, c) for c in CURVES}
+        if all(v is None for v in local.values()) and not delta:
+            return base
+        fields_ = {f.name: getattr(base, f.name) for f in fields(Compressor)}
+        d = delta or {}
+        return LearnedCompressor(**fields_, local_is=local["eta_is"], local_vol=local["eta_vol"],
+                                 delta_is=tuple(d["eta_is"]) if "eta_is" in d else None,
+                                 delta_vol=tuple(d["eta_vol"]) if "eta_vol" in d else None)
 
     def apply(self, params: PlantParams) -> PlantParams:
         """``params`` with the learned compressors."""
         return params.replace(comp_LS=self.compressor("LS"), comp_HS=self.compressor("HS"))
 
     def draws(self, k: int, rng: np.random.Generator) -> list[dict]:
-        """k draws of the learned coefficients from their covariance (scaled basis), per stage:
-        [{"LS": {"eta_is": a, "eta_vol": a}, "HS": {...}}, ...] (only learned curves vary)."""
+        """k draws from the learned coefficients' covariance (scaled basis) as differences to the
+        learned curves, per stage: [{"LS": {"eta_is": da, "eta_vol": da}, "HS": {...}}, ...] (only
+        learned curves vary); ``compressor(stage, delta=draw[stage])`` applies one."""
         out = []
         chol = {}
         for st in STAGES:
@@ -526,7 +758,7 @@ class CompressorLearner:
         for _ in range(k):
             d = {st: {} for st in STAGES}
             for (st, c), (a, L) in chol.items():
-                d[st][c] = a + L @ rng.standard_normal(6)
+                d[st][c] = L @ rng.standard_normal(6)      # a difference to the learned curve
             out.append(d)
         return out
 
@@ -588,6 +820,7 @@ class CompressorLearner:
             "settings": {f.name: getattr(self.s, f.name) for f in fields(self.s)},
             "t_last": self.t_last, "n_seen": self.n_seen,
             "stats": {f"{st}.{c}": v.to_dict() for (st, c), v in self.stats.items()},
+            "bins": {f"{st}.{c}": v.to_dict() for (st, c), v in self.bins.items()},
             "coverage": {st: v.to_dict() for st, v in self.coverage.items()},
             "drive": self.drive, "subcooling": self.subcooling,
             "commissioning": self.commissioning,
@@ -610,6 +843,9 @@ class CompressorLearner:
                 obj.stats[(st, c)] = _Stats.from_dict(v)
             for st, v in d["coverage"].items():
                 obj.coverage[st] = _Coverage.from_dict(v)
+            for key, v in (d.get("bins") or {}).items():
+                st, c = key.split(".")
+                obj.bins[(st, c)] = _BinStats.from_dict(v, obj.s.bin_pi, obj.s.bin_n)
             obj.drive = {k: [float(a), float(b)] for k, (a, b) in d["drive"].items()}
             obj.subcooling = [float(x) for x in d["subcooling"]]
             obj.commissioning = d.get("commissioning")

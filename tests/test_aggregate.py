@@ -264,7 +264,7 @@ def test_flatline_defaults_and_the_tag_map_key(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_config(tmp_path / "gateway.yaml", load_plant=False)
     assert [p.split("tags.yaml: ")[1] for p in info.value.problems] == [
-        "tag 'T_c': key 'flatline_s': must be >= 0 (0: no flat-line check), got -1"]
+        "line 26: tag 'T_c': key 'flatline_s': must be >= 0 (0: no flat-line check), got -1"]
     doc["tags"]["T_c"]["flatline_s"] = 0
     (tmp_path / "tags.yaml").write_text(yaml.safe_dump(doc))
     cfg = load_config(tmp_path / "gateway.yaml", load_plant=False)

@@ -53,7 +53,7 @@ class AdviceSettings:
     min_coverage_share: float = 0.8     # of the window's samples inside the learned region
     max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
     dead_band_pct: float = 0.05         # move the recommendation only for more COP than this [%]
-    inside_tolerance: float = 0.25      # confident only when the optimum's compressor operating
+    inside_tolerance: float = 0.75      # confident only when the optimum's compressor operating
                                         # points (and its neighbours') lie within this many margins
                                         # of the bins the compressors have run in
     neighbour_bar: float = 0.5          # the neighbours checked on either side of the optimum

@@ -85,6 +85,7 @@ class SetpointResult:
     model_evaluations: int          # evaluations of the evaluation rows (or the scan subsample)
     run_time_s: float
     n_eval_rows: int = 0            # rows the search evaluated (representative points or all)
+    ls_saturated: bool = False      # at the optimum some sample's LS sits at its speed limit
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -325,7 +326,8 @@ def optimize_setpoint(data: pd.DataFrame, params: PlantParams, coarse_step: floa
         dQ_sink_gm_pct=100.0 * (opt.Q_sink_kW / gm.Q_sink_kW - 1.0) if gm.ok else math.nan,
         hs_saturated=p.hs_saturated, bounds_barg=(lo, hi), n_samples=n, n_dropped=n_dropped,
         model_evaluations=full.evals + (ev.evals if ev is not full else 0),
-        run_time_s=time.perf_counter() - t0, n_eval_rows=len(ev.rows))
+        run_time_s=time.perf_counter() - t0, n_eval_rows=len(ev.rows),
+        ls_saturated=bool(np.nan_to_num(opt.frame["ls_saturated"].to_numpy(dtype=float)).max() > 0.5))
 
 
 def sweep(data: pd.DataFrame, params: PlantParams, step: float = 0.05,

@@ -230,6 +230,10 @@ def generate_samples(params: PlantParams, design: dict | None = None, progress=N
             except OptimizationError:
                 skipped["optimization failed"] = skipped.get("optimization failed", 0) + 1
                 continue
+            if opt.ls_saturated:   # capacity-limited: the optimum depends on more than the inputs
+                skipped["LS at its speed limit at the optimum"] = \
+                    skipped.get("LS at its speed limit at the optimum", 0) + 1
+                continue
             r = ref.iloc[i]
             rows.append({"R_th_f_K_per_kW": R, **ops.iloc[i].to_dict(),
                          "eta_is_product": r["eta_is_LS"] * r["eta_is_HS"],

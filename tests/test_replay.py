@@ -104,9 +104,16 @@ def test_initial_window_and_counts(result, history):
 
 def test_optimization_per_window(result):
     ok = result.windows[result.windows["status"] == "ok"]
-    assert ok["p_m_opt_bar_a"].notna().all()
-    assert (ok["dCOP_opt_pct"] >= 0).all()
-    assert (ok["p_m_opt_bar_a"] > ok["p_m_gm_bar_a"] - 1.0).all()
+    assert ok["optimization_ok"].all()
+    assert ok["p_m_sp_model_opt_barg"].notna().all() and ok["p_m_opt_barg"].notna().all()
+    assert (ok["dCOP_model_opt_pct"] >= 0).all()
+    assert (ok["p_m_sp_model_opt_barg"] > ok["p_m_gm_barg"] - 1.5).all()
+    # confident advice recommends the model's optimum (or keeps a previous one within the dead
+    # band); otherwise the current set point with a reason, and no expected change
+    conf = ok["advice_confident"].astype(bool)
+    assert (ok.loc[~conf, "p_m_sp_opt_barg"] == ok.loc[~conf, "p_m_sp_actual_barg"]).all()
+    assert (ok.loc[~conf, "dCOP_opt_pct"] == 0.0).all() and (ok.loc[~conf, "advice_note"] != "").all()
+    assert (ok.loc[conf, "dCOP_opt_pct"] > 0).all()
 
 
 def test_cip_without_flag_is_found_by_the_long_stop(plant, history):

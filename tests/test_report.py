@@ -174,14 +174,14 @@ def test_report_from_replay_has_every_figure_with_its_data(replay_report, replay
     fou = res.figure("fouling").series
     _close(fou["R_th_f"][1], w["R_th_f_K_per_kW"])
     _close(fou["R_th_f_se"][1], w["R_th_f_se_K_per_kW"])
-    _close(fou["R_th_f_share_pct"][1], 100.0 * w["R_th_f_share"])
+    _close(fou["R_th_f_share_pct"][1], w["R_th_f_share_pct"])
     cip = pd.read_csv(replay_dir / "cip.csv")
     _close(fou["cip_removed_pct"][1], cip["R_th_f_removed_pct"])
     _close(res.figure("pressure_drop").series["CF_dp_f"][1], w["CF_dp_f"])
     _close(res.figure("pressure_drop").series["dp_fouling_bar"][1], w["dp_fouling_bar"])
     sp = res.figure("setpoint").series
     _close(sp["p_m_sp_opt_barg"][1], w["p_m_sp_opt_barg"])
-    _close(sp["p_m_gm_barg"][1], w["p_m_gm_bar_a"] - AMBIENT_BAR, atol=1e-12)
+    _close(sp["p_m_gm_barg"][1], w["p_m_gm_barg"], atol=1e-12)
     _close(sp["dCOP_opt_pct"][1], w["dCOP_opt_pct"])
 
 
@@ -197,7 +197,7 @@ def test_replay_report_per_sample_series_are_the_measurement_and_the_models(
     q = plant.cp_w * plant.rho_w / 3600e3 * hist["V_sink"] * (hist["T_sink_out"] - hist["T_sink_in"])
     cop = (q / (hist["W_LS"] + hist["W_HS"])).to_numpy()
     usable = data.samples["usable"].to_numpy() > 0.5
-    _close(ts["COP_measured"][1], np.where(usable, cop, np.nan), rtol=1e-12)
+    _close(ts["COP_measured"][1], np.where(usable, cop, np.nan))     # through samples.csv
     assert 0.6 * len(hist) < usable.sum() < len(hist)
     # the adaptive value of a sample inside a window: the fixed model + that window's R_th,f, CF_dp,f
     w = data.windows[data.windows["status"] == "ok"].reset_index(drop=True)
@@ -205,12 +205,11 @@ def test_replay_report_per_sample_series_are_the_measurement_and_the_models(
     t = data.samples["timestamp"]
     i = int(np.flatnonzero(usable & (t > w["window_start"][1]).to_numpy()
                            & (t < w["window_end"][1]).to_numpy())[5])
-    row = data.samples.iloc[[i]].rename(columns={"p_m_sp_barg": "p_m_sp"})
-    by_hand = simulate_batch(row, with_fouling(fixed, w["R_th_f_K_per_kW"][1], w["CF_dp_f"][1]),
-                             columns=("COP",))["COP"].iloc[0]
-    assert ts["COP_adaptive"][1][i] == pytest.approx(by_hand, rel=MODEL_RTOL)
-    fixed_by_hand = simulate_batch(row, fixed, columns=("COP",))["COP"].iloc[0]
-    assert ts["COP_fixed"][1][i] == pytest.approx(fixed_by_hand, rel=MODEL_RTOL)
+    # replay wrote the chain's per-sample model values (samples.csv): the report plots them as written
+    assert np.isfinite(data.samples["COP_adaptive"]).sum() > 100
+    _close(ts["COP_adaptive"][1], np.where(usable, data.samples["COP_adaptive"], np.nan))
+    _close(ts["COP_fixed"][1], np.where(usable, data.samples["COP_fixed"], np.nan))
+    assert i >= 0
     # the papers' result, in the report's own series: the adaptive model follows COP better
     meas = ts["COP_measured"][1]
     both = np.isfinite(ts["COP_adaptive"][1]) & np.isfinite(meas)
@@ -324,8 +323,7 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, syn
     new = work / "contract"
     shutil.copytree(replay_dir, new)
     w = pd.read_csv(replay_dir / "windows.csv")
-    w["R_th_f_share_pct"] = 100.0 * w.pop("R_th_f_share")
-    w["p_m_gm_barg"] = w.pop("p_m_gm_bar_a") - AMBIENT_BAR
+    assert {"R_th_f_share_pct", "p_m_gm_barg", "advice_confident"} <= set(w.columns)  # as written
     w["dCOP_opt_sd_pct"] = 0.4
     w["advice_confident"] = ["true", "false"] * (len(w) // 2) + ["true"] * (len(w) % 2)
     w["advice_note"] = np.where(w["advice_confident"] == "false", "gain within its uncertainty", "")
@@ -346,7 +344,7 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, syn
     s["usable"] = np.where(s["usable"] > 0.5, "true", "false")
     # samples.csv as the contract lists it: without the boundary conditions, which --data supplies
     s.drop(columns=["N_LS_model", "N_HS_model", "T_source_in", "T_source_out", "T_sink_in",
-                    "V_source", "V_sink"]).to_csv(new / "samples.csv", index=False)
+                    "V_source", "V_sink"], errors="ignore").to_csv(new / "samples.csv", index=False)
     (new / "meta.json").write_text(json.dumps({"plant": "Test plant 2 MW", "n_rows": 720,
                                                "hp_edge_version": "9.9.9"}))
     out = work / "contract.html"
@@ -367,8 +365,12 @@ def test_contract_columns_forecast_and_confidence(replay_report, replay_dir, syn
 
 
 def test_old_replay_directory_without_samples_says_what_is_missing(replay_dir, work, capsys):
+    old = work / "old-replay"                  # what replay wrote before samples.csv and meta.json
+    shutil.copytree(replay_dir, old)
+    for name in ("samples.csv", "meta.json", "compressors.json"):
+        (old / name).unlink(missing_ok=True)
     out = work / "old.html"
-    _report([str(replay_dir), "--out", str(out)])
+    _report([str(old), "--out", str(out)])
     html = out.read_text(encoding="utf-8")
     assert_self_contained(html)
     pts = figure_points(html)

@@ -16,7 +16,7 @@ from model.surrogate import (EXPONENTS, INPUTS, OUTPUTS, Surrogate, SurrogateErr
 ROOT = Path(__file__).resolve().parent.parent
 SHIPPED = ROOT / "config" / "surrogate.json"
 EXACT_RTOL = 1e-8          # a polynomial of the basis is reproduced to round-off
-MIN_R2_SMALL_DESIGN = 0.5  # floor for the small test design (~95 optima; 0.66-0.71 measured):
+MIN_R2_SMALL_DESIGN = 0.5  # floor for the small test design (~200 optima; 0.80-0.97 measured):
                            # catches a broken pipeline; the shipped fit reports its own R^2 (~0.91-0.94)
 
 
@@ -86,9 +86,12 @@ def test_json_round_trip(tmp_path):
 
 
 def test_fit_on_model_optima_reports_r2_on_held_out(plant):
-    design = {"fouling_levels_K_per_kW": [0.0, 3e-3, 6e-3], "points_per_level": 45, "seed": 3}
+    # 90 points per level: with 45 the held-out R^2 of a 27-term fit swung from -0.3 to 0.9 with
+    # the split alone (on main too); with 90 it stays within 0.8-0.97 over eight split seeds
+    design = {"fouling_levels_K_per_kW": [0.0, 3e-3, 6e-3], "points_per_level": 90, "seed": 3}
     samples, skipped = generate_samples(plant.replace(CF_eva=0.95), design)
-    assert len(samples) + sum(skipped.values()) == 135
+    assert len(samples) + sum(skipped.values()) == 270
+    assert skipped.get("LS at its speed limit at the optimum", 0) > 0   # capacity-limited points left out
     sur = fit_surrogate(samples, seed=3)
     assert sur.n_test == len(samples) - round(0.7 * len(samples))
     test_rows = sur.meta["test_rows"]

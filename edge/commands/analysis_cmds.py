@@ -450,7 +450,7 @@ def cmd_replay(args) -> int:
             if frame is None:
                 continue
             tmp = out / f".{name}.tmp"
-            frame.to_csv(tmp, index=False, float_format="%.6g")
+            frame.to_csv(tmp, index=False, float_format="%.10g")
             os.replace(tmp, out / name)
         meta = {**res.meta, "plant": str(args.config), "history": str(args.history),
                 "hp_edge_version": _version()}

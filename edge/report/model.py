@@ -24,12 +24,20 @@ def model_for_report(plant_params, state_docs: dict):
     """The fixed model the report draws: plant.yaml's parameters (``plant_params``, a
     PlantParams) with the initial calibration and the clean pressure-drop fit of ``state_docs``
     (keys ``initial``, ``dp_clean``, ``compressors``: dicts as stored by edge.statefiles, None
-    when absent). Fouling is added per window by ``with_fouling``. Learned compressor curves
-    (``compressors``) are not applied yet: ``model_notes`` says so in the report.
+    when absent), with the learned compressor curves of ``compressors`` when it is there (as the
+    analysis chain uses them). Fouling is added per window by ``with_fouling``.
     """
+    from model.analysis.compressors import CompressorLearner, LearningError
     from model.calibration import apply_state
 
-    return apply_state(plant_params, state_docs.get("initial"), state_docs.get("dp_clean"))
+    fixed = apply_state(plant_params, state_docs.get("initial"), state_docs.get("dp_clean"))
+    doc = state_docs.get("compressors")
+    if doc is not None:
+        try:
+            fixed = CompressorLearner.from_dict(doc, plant_params).apply(fixed)
+        except LearningError:
+            pass        # model_notes says the curves could not be read
+    return fixed
 
 
 def model_notes(state_docs: dict) -> list[str]:
@@ -39,9 +47,15 @@ def model_notes(state_docs: dict) -> list[str]:
         notes.append("no initial calibration: the fixed model is the data sheet (plant.yaml)")
     if state_docs.get("dp_clean") is None:
         notes.append("no clean pressure-drop fit: plant.yaml's dp_clean_coef is used")
-    if state_docs.get("compressors") is not None:
-        notes.append("compressors.json (learned compressor curves) is present but not applied: "
-                     "the report draws plant.yaml's curves")
+    doc = state_docs.get("compressors")
+    if doc is not None:
+        if isinstance(doc, dict) and doc.get("format") == "hp-edge-compressors/1":
+            notes.append("the compressor curves are the ones learned from the plant's data "
+                         "(compressors.json), as the analysis used them at the period's end")
+        else:
+            notes.append("compressors.json cannot be read: the report draws plant.yaml's curves")
+    else:
+        notes.append("no learned compressor curves: the report draws plant.yaml's curves")
     return notes
 
 

@@ -216,7 +216,10 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
     rec = full.at(sp_rec)
     opt = rec if sp_rec == sp_opt else full.at(sp_opt)
     if not (rec.ok and opt.ok):
-        raise OptimizationError("the recommended set point does not solve every sample of the window")
+        bad = rec.frame if not rec.ok else opt.frame
+        why = bad.loc[~np.isin(bad["status"].to_numpy(), SOLVED), "reason"].astype(str)
+        raise OptimizationError(f"the recommended set point {sp_rec:.2f} bar(g) does not solve every "
+                                f"sample of the window ({len(why)} of {len(bad)}: {why.iloc[0]})")
     dcop = 100.0 * (rec.COP / ref.COP - 1.0)
     dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
     dcop_step = 100.0 * (opt.COP / ref.COP - 1.0)

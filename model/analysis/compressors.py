@@ -467,6 +467,10 @@ class LocalCurves:
                 continue
         self.coef = coef.reshape(npi, nn, 6)
         self.valid = np.isfinite(self.coef).all(axis=2)
+        # the outermost ring of nodes answers with the global curve, so that the blend meets the
+        # global fit continuously where the grid ends (a jump there broke the LS speed search)
+        self.valid[[0, -1], :] = False
+        self.valid[:, [0, -1]] = False
         self.global_coef = global_coef
         self.ok = bool(self.valid.any())
 

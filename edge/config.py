@@ -89,6 +89,8 @@ class GatewayConfig:
     history_db: Path
     history_retention_days: float
     plant: dict | None = field(default=None, compare=False, hash=False)  # None: not loaded
+    # optional section (issue 14): edge.northbound.config.NorthboundConfig, None when absent
+    northbound: Any = None
 
     def tag(self, name: str) -> TagConfig:
         for t in self.tags:
@@ -159,13 +161,18 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         history_db=top.path("history_db", base),
         history_retention_days=top.number("history_retention_days", positive=True),
     )
+    northbound = None
+    if "northbound" in data:     # issue 14: parsed by its own module, problems land here
+        from edge.northbound.config import parse_northbound
+        northbound = parse_northbound(top.child("section 'northbound'", data["northbound"]), base)
     if p.lines:
         raise ConfigError(p.lines)
     return GatewayConfig(
         path=path.resolve(), plc=plc, tags=tags, advisory=advisory, tags_file=tags_path,
         plant_file=plant_path, scan_interval_s=scan, aggregate_s=aggregate,
         calibration_interval_s=calib_every, calibration_window_h=window_h,
-        min_window_samples=min_samples, life_counter_tag=life_counter, plant=plant, **cfg_kwargs,
+        min_window_samples=min_samples, life_counter_tag=life_counter, plant=plant,
+        northbound=northbound, **cfg_kwargs,
     )
 
 
@@ -174,7 +181,7 @@ _TOP_REQUIRED = (
     "calibration_interval_s", "calibration_window_h", "min_window_samples", "optimizer",
     "life_counter_tag", "state_dir", "history_db", "history_retention_days", "advisory",
 )
-_TOP_KEYS = _TOP_REQUIRED
+_TOP_KEYS = _TOP_REQUIRED + ("northbound",)   # optional (issue 14, edge/northbound/config.py)
 
 
 def _plc(sec: _Section) -> PlcConfig | None:

@@ -94,10 +94,10 @@ class _Text:
         self.lines.append(f"# HELP {PREFIX}{name} {help_}")
         self.lines.append(f"# TYPE {PREFIX}{name} {kind}")
 
-    def sample(self, name: str, value: Any, **labels: Any) -> None:
+    def sample(self, metric: str, value: Any, **labels: Any) -> None:
         lab = ",".join(f'{k}="{_label(v)}"' for k, v in labels.items())
-        self.lines.append(f"{PREFIX}{name}{{{lab}}} {_num(value)}" if lab
-                          else f"{PREFIX}{name} {_num(value)}")
+        self.lines.append(f"{PREFIX}{metric}{{{lab}}} {_num(value)}" if lab
+                          else f"{PREFIX}{metric} {_num(value)}")
 
     def text(self) -> str:
         return "\n".join(self.lines) + "\n"

@@ -144,6 +144,7 @@ def _mqtt(sec: Any, base: Path) -> MqttConfig | None:
         reconnect_max_s=sec.number("reconnect_max_s", positive=True, default=d.reconnect_max_s),
         max_backlog_rows=sec.integer("max_backlog_rows", lo=100, default=d.max_backlog_rows),
         username=sec.string("username", default=None),
+        password=None, password_source=None,
     )
     qos = sec.integer("qos", lo=0, hi=1, default=d.qos)
     kw["qos"] = qos
@@ -203,8 +204,7 @@ def _tls(sec: Any, base: Path) -> TlsConfig | None:
     kw = {k: sec.path(k, base, must_exist=True) if k in sec.data else None
           for k in ("ca_file", "cert_file", "key_file")}
     insecure = _flag(sec, "insecure", False)
-    if (kw["cert_file"] is None) != (kw["key_file"] is None) and \
-            ("cert_file" in sec.data) != ("key_file" in sec.data):
+    if ("cert_file" in sec.data) != ("key_file" in sec.data):
         sec.problem("key_file" if "cert_file" in sec.data else "cert_file",
                     "a client certificate needs both cert_file and key_file")
     if sec.count() != n0:

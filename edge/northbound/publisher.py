@@ -118,6 +118,11 @@ class MqttPublisher:
         # row stored from here on is queued (when the database is locked, the thread retries)
         self._ensure_outbox()
 
+    @property
+    def caught_up(self) -> bool:
+        """Connected, born, and the backlog was found empty: rows stored now go out live."""
+        return self.connected and self._session and self._caught_up and not self._need_birth
+
     # ---------------------------------------------------------------- observer interface
 
     async def start(self, gateway: Any) -> None:
@@ -164,6 +169,10 @@ class MqttPublisher:
             if not self._ensure_outbox():
                 self._stop.wait(min(backoff, 5.0))
                 continue
+            try:
+                self._count_depth()
+            except Exception as exc:  # noqa: BLE001 - sqlite: locked, I/O (counted again later)
+                log.debug("northbound: outbox not counted: %s", exc)
             if self._client is None:
                 now = time.monotonic()
                 if now < next_try:
@@ -196,7 +205,6 @@ class MqttPublisher:
                 self._publish_status()
                 self._pump()
                 self._write_acks()
-                self._count_depth()
             except Exception as exc:  # noqa: BLE001 - sqlite (locked, I/O) or an encoding bug
                 self._db_log.fail(f"{type(exc).__name__}: {exc}")
                 log.debug("northbound step failed", exc_info=True)
@@ -243,9 +251,7 @@ class MqttPublisher:
     def _connect(self) -> bool:
         cfg = self.cfg
         self._reset_session()
-        self._bd_seq = (self._bd_seq + 1) % 256
-        assert self._outbox is not None
-        self._outbox.set_state("bdSeq", self._bd_seq)
+        bd_seq = (self._bd_seq + 1) % 256      # counts CONNECT packets sent (Sparkplug bdSeq)
         c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=cfg.effective_client_id,
                         clean_session=True, protocol=mqtt.MQTTv311)
         c.connect_timeout = min(5.0, cfg.keepalive_s)
@@ -261,7 +267,7 @@ class MqttPublisher:
                 c.tls_insecure_set(True)
         now_ms = int(time.time() * 1000)
         if self.sparkplug:
-            c.will_set(self.t_death, sparkplug.encode_death(bd_seq=self._bd_seq,
+            c.will_set(self.t_death, sparkplug.encode_death(bd_seq=bd_seq,
                                                             timestamp_ms=now_ms), qos=1)
         else:
             c.will_set(self.t_status, jsonmode.status(False, time.time()), qos=1, retain=True)
@@ -274,6 +280,9 @@ class MqttPublisher:
         except (OSError, ValueError) as exc:      # refused, unreachable, TLS, timeout
             self._conn_log.fail(f"cannot connect: {exc}")
             return False
+        self._bd_seq = bd_seq
+        assert self._outbox is not None
+        self._outbox.set_state("bdSeq", bd_seq)
         self.connects += 1
         self._client = c
         self._connack_by = time.monotonic() + CONNACK_TIMEOUT_S

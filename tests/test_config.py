@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "config" / "gateway.yaml"
 TOP_KEYS = ("plc, tags_file, plant_file, scan_interval_s, aggregate_s, "
             "calibration_interval_s, calibration_window_h, min_window_samples, optimizer, "
-            "life_counter_tag, state_dir, history_db, history_retention_days, advisory")
+            "life_counter_tag, state_dir, history_db, history_retention_days, advisory, northbound")
 TAG_KEYS = ("register, address, type, byte_order, scale, offset, unit, range, max_age_s, "
             "sentinel, pressure, flatline_s")
 

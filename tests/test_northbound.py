@@ -575,3 +575,19 @@ def test_an_enabled_publisher_without_its_libraries_stops_the_start_with_exit_2(
     assert r.returncode == 0, r.stderr
     assert "northbound.mqtt is enabled but its libraries are missing" in r.stdout
     assert "pip install 'hp-edge[northbound]'" in r.stdout
+
+
+def test_the_commented_example_in_gateway_yaml_is_valid_when_uncommented(confdir, monkeypatch):
+    monkeypatch.setenv("HP_EDGE_MQTT_PASSWORD", "x")
+    path = confdir / "gateway.yaml"
+    lines = path.read_text(encoding="utf-8").splitlines()
+    start = lines.index("# northbound:")
+    block = []
+    for ln in lines[start:]:
+        if not ln.startswith("#"):
+            break
+        block.append(ln[2:])
+    path.write_text("\n".join(lines[:start] + block) + "\n", encoding="utf-8")
+    nb = load_config(path, load_plant=False).northbound
+    assert nb.mqtt == MqttConfig(enabled=True)           # the example shows the defaults
+    assert nb.health == HealthConfig(enabled=True)

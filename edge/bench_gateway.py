@@ -86,7 +86,8 @@ def _gateway_yaml(tmp: Path, port: int, speed: float, config: Path,
 
 def bench_gateway(plant_minutes: float = 60.0, speed: float = 120.0,
                   warmup_minutes: float = 120.0, config: str | Path | None = None,
-                  northbound: bool = True, outage_minutes: float = 30.0) -> dict:
+                  northbound: bool = True, outage_minutes: float = 30.0,
+                  outage_speed: float = 60.0) -> dict:
     """Run the benchmark (about (warmup + plant_minutes) * 60 / speed seconds of wall time plus
     start-up, twice with ``northbound``: without and with the MQTT publisher against a local
     mosquitto, then the broker-outage run of edge.northbound.bench) and return its figures as a
@@ -120,7 +121,8 @@ def bench_gateway(plant_minutes: float = 60.0, speed: float = 120.0,
                       "and the publisher thread's own CPU time (time.thread_time, read from "
                       "the health endpoint), per plant second at a 5-s scan",
         }
-        out["northbound_outage"] = bench_outage(outage_minutes=outage_minutes)
+        out["northbound_outage"] = bench_outage(outage_minutes=outage_minutes,
+                                                speed=outage_speed, config=cfg_path)
     return out
 
 

@@ -244,7 +244,8 @@ class MqttPublisher:
         self._caught_up = False
         self._seq = 0
         self._inflight: dict[int, int] = {}       # mid -> outbox id
-        self._order: deque[list] = deque()        # [outbox id, acked?] in send order
+        self._order: deque[list] = deque()        # [outbox id, acked?, historical?] in send
+        #                                           order (historical None: nothing was sent)
         self._buffer: deque[Entry] = deque()
         self._last_status: dict | None = None
 
@@ -425,7 +426,7 @@ class MqttPublisher:
             self._expect = e.id + 1
             if e.row is None:            # pruned by retention before it could be sent
                 self.expired += 1
-                self._order.append([e.id, True])
+                self._order.append([e.id, True, None])
                 continue
             historical = not self._caught_up or e.ts < self._newest_live[e.source]
             values = self.catalog.values(e.source, e.row).items()
@@ -443,18 +444,19 @@ class MqttPublisher:
                 self._expect = e.id
                 return
             self._inflight[info.mid] = e.id
-            self._order.append([e.id, False])
-            if historical:
-                self.historical += 1
-            else:
+            self._order.append([e.id, False, historical])
+            if not historical:
                 self._newest_live[e.source] = max(self._newest_live[e.source], e.ts)
             if info.is_published():          # QoS 0: written at once, no acknowledgement
                 self._on_publish(self._client, None, info.mid, None, None)
 
     def _write_acks(self, force: bool = False) -> None:
         while self._order and self._order[0][1]:
-            self._acked_upto = self._order.popleft()[0]
-            self.published += 1
+            oid, _, historical = self._order.popleft()
+            self._acked_upto = oid
+            if historical is not None:
+                self.published += 1
+                self.historical += bool(historical)
         now = time.monotonic()
         if self._acked_upto > self._deleted_upto and (force or now - self._last_ack_write
                                                       >= ACK_EVERY_S):

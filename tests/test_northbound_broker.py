@@ -437,3 +437,51 @@ def _query(db: Path, sql: str):
         return c.execute(sql).fetchall()
     finally:
         c.close()
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
+
+
+def test_tls_to_a_broker_whose_certificate_a_private_ca_signed(tmp_path):
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj",
+             "/CN=hp-edge test CA", "-keyout", "ca.key", "-out", "ca.pem", cwd=pki)
+    _openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1", "-keyout",
+             "server.key", "-out", "server.csr", cwd=pki)
+    (pki / "san.ext").write_text("subjectAltName=IP:127.0.0.1,DNS:localhost\n", encoding="utf-8")
+    _openssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+             "-CAcreateserial", "-days", "2", "-extfile", "san.ext", "-out", "server.pem",
+             cwd=pki)
+    b = Mosquitto(tmp_path / "mq", extra=f"cafile {pki / 'ca.pem'}\ncertfile {pki / 'server.pem'}"
+                                          f"\nkeyfile {pki / 'server.key'}\n").start()
+    store = HistoryStore(tmp_path / "h.sqlite", 400).open()
+    try:
+        from edge.northbound.config import TlsConfig
+        pub = publisher(b.port, tmp_path / "h.sqlite", tls=TlsConfig(ca_file=pki / "ca.pem"))
+
+        async def go():
+            await pub.start(None)
+            store.add_samples(rows(0, 2))
+            await until(lambda: pub.published == 2, what="sent over TLS")
+            await pub.stop()
+        run(go())
+        assert pub.connects == 1 and pub.error is None
+        # a CA that did not sign the broker's certificate: no connection, rows wait
+        _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj",
+                 "/CN=another CA", "-keyout", "other.key", "-out", "other.pem", cwd=pki)
+        stranger = publisher(b.port, tmp_path / "h.sqlite",
+                             tls=TlsConfig(ca_file=pki / "other.pem"))
+
+        async def refused():
+            await stranger.start(None)
+            store.add_samples(rows(2, 1))
+            await until(lambda: stranger.queue_depth == 1 and stranger._conn_log.total >= 2,
+                        what="refused twice")
+            await stranger.stop()
+        run(refused())
+        assert stranger.published == 0 and not stranger.connected
+    finally:
+        store.close()
+        b.stop()

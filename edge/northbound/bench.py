@@ -168,6 +168,48 @@ async def _outage(outage_min: float, speed: float, warmup_min: float, after_min:
     }
 
 
+def idle_cpu(seconds: float = 10.0, port: int | None = None) -> dict:
+    """CPU share of the publisher thread while connected with nothing to send, at real time
+    (its network loop wakes every IDLE_LOOP_S; an accelerated run compresses those wake-ups
+    away, so this part is measured on the wall clock)."""
+    from edge.config import load_config
+    from edge.northbound.config import MqttConfig
+    from edge.northbound.publisher import MqttPublisher
+    from edge.store import HistoryStore
+
+    async def run(db: Path, port: int) -> float:
+        cfg = load_config(ROOT / "config" / "gateway.yaml", load_plant=False)
+        store = HistoryStore(db, 400).open()
+        pub = MqttPublisher(MqttConfig(enabled=True, port=port), cfg.__class__(
+            **{**cfg.__dict__, "history_db": db}))
+        try:
+            await pub.start(None)
+            deadline = time.monotonic() + 20.0
+            while not pub.caught_up and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(1.0)
+            c0 = pub.cpu_s
+            await asyncio.sleep(seconds)
+            return (pub.cpu_s - c0) / seconds
+        finally:
+            await pub.stop()
+            store.close()
+
+    with tempfile.TemporaryDirectory(prefix="hp-edge-bench-idle-") as tmp:
+        tmp = Path(tmp)
+        broker = None
+        if port is None:
+            broker = Mosquitto(tmp / "mosquitto").start()
+            port = broker.port
+        try:
+            share = asyncio.run(run(tmp / "h.sqlite", port))
+        finally:
+            if broker is not None:
+                broker.stop()
+    return {"publisher_idle_cpu_pct_of_one_core": round(100.0 * share, 4),
+            "idle_seconds_measured": seconds}
+
+
 def _stored(db: Path) -> list[int]:
     c = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
     try:

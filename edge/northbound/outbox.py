@@ -122,6 +122,13 @@ class Outbox:
                     rows[(tbl, d["ts"])] = d
         return [Entry(i, SOURCES[t], ts, rows.get((t, ts))) for i, t, ts in refs]
 
+    def changed(self) -> bool:
+        """True when another connection (the store) committed since the last call: only then can
+        there be new entries (``PRAGMA data_version``, a read of the connection's own state)."""
+        v = self.db.execute("PRAGMA data_version").fetchone()[0]
+        seen, self._data_version = getattr(self, "_data_version", None), v
+        return v != seen
+
     def ack(self, upto_id: int) -> int:
         """Forget every entry with id <= ``upto_id`` (delivered). Returns the entries removed."""
         return self.db.execute(f"DELETE FROM {OUTBOX} WHERE id <= ?", (upto_id,)).rowcount

@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 WINDOW = 64               # data messages in flight (sent, not yet acknowledged) at most
 FETCH = 256               # outbox entries read per query
 ACK_EVERY_S = 0.5         # delete acknowledged entries at most this often (one transaction)
-IDLE_LOOP_S = 0.2         # network loop timeout when there is nothing to send
+IDLE_LOOP_S = 0.5         # network loop timeout when there is nothing to send
 BUSY_LOOP_S = 0.005       # ... and while sending a backlog
 CONNACK_TIMEOUT_S = 10.0  # a connection without CONNACK by then is dropped
 STOP_FLUSH_S = 2.0        # on stop: wait this long at most for outstanding acknowledgements
@@ -410,6 +410,8 @@ class MqttPublisher:
         assert self._client is not None and self._outbox is not None
         while len(self._inflight) < WINDOW and not self._need_birth:
             if not self._buffer:
+                if self._caught_up and not self._outbox.changed():
+                    return                   # nothing was stored since the last empty fetch
                 after = self._order[-1][0] if self._order else self._acked_upto
                 got = self._outbox.fetch(after, FETCH)
                 if not got:

@@ -408,7 +408,8 @@ class MqttPublisher:
     def _pump(self) -> None:
         """Send outbox rows in order while fewer than WINDOW are unacknowledged."""
         assert self._client is not None and self._outbox is not None
-        while len(self._inflight) < WINDOW and not self._need_birth:
+        budget = WINDOW          # per call, so the network loop runs between batches (QoS 0)
+        while len(self._inflight) < WINDOW and not self._need_birth and budget > 0:
             if not self._buffer:
                 if self._caught_up and not self._outbox.changed():
                     return                   # nothing was stored since the last empty fetch
@@ -445,6 +446,7 @@ class MqttPublisher:
                 self._buffer.appendleft(e)        # the connection is going: resent later
                 self._expect = e.id
                 return
+            budget -= 1
             self._inflight[info.mid] = e.id
             self._order.append([e.id, False, historical])
             if not historical:

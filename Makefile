@@ -4,12 +4,12 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench venv clean mosquitto
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,report]'
+	$(BIN)/python -m pip install --quiet -e '.[test,report,northbound]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -17,7 +17,18 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/hp-edge demo $(DEMO_ARGS)
 
-test: $(STAMP)
+# The northbound tests run a real MQTT broker: Debian's mosquitto, installed here when missing
+# (as root: apt-get; otherwise through sudo). A machine without it fails those tests, loudly.
+MOSQUITTO := $(shell command -v mosquitto 2>/dev/null || ls /usr/sbin/mosquitto 2>/dev/null)
+
+mosquitto:
+ifeq ($(MOSQUITTO),)
+	@echo "installing mosquitto (the northbound tests' MQTT broker) with apt-get"
+	$(if $(filter 0,$(shell id -u)),,sudo) env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+	$(if $(filter 0,$(shell id -u)),,sudo) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends mosquitto
+endif
+
+test: $(STAMP) mosquitto
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 bench: $(STAMP)

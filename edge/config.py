@@ -170,6 +170,8 @@ class GatewayConfig:
     history_retention_days: float
     plant: dict | None = field(default=None, compare=False, hash=False)  # None: not loaded
     reserved: tuple[Reserved, ...] = ()
+    # optional section (issue 14): edge.northbound.config.NorthboundConfig, None when absent
+    northbound: Any = None
 
     def tag(self, name: str) -> TagConfig:
         for t in self.tags:
@@ -239,6 +241,10 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         history_db=_state_path(top, "history_db", base),
         history_retention_days=top.number("history_retention_days", positive=True),
     )
+    northbound = None
+    if "northbound" in data:     # issue 14: parsed by its own module, problems land here
+        from edge.northbound.config import parse_northbound
+        northbound = parse_northbound(top.child("section 'northbound'", data["northbound"]), base)
     if p.lines:
         raise ConfigError(p.lines)
     return GatewayConfig(
@@ -246,7 +252,7 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         plant_file=plant_path, scan_interval_s=scan, aggregate_s=aggregate,
         calibration_interval_s=calib_every, calibration_window_h=window_h,
         min_window_samples=min_samples, life_counter_tag=life_counter, plant=plant,
-        reserved=reserved, **cfg_kwargs,
+        reserved=reserved, northbound=northbound, **cfg_kwargs,
     )
 
 
@@ -289,7 +295,7 @@ _TOP_REQUIRED = (
     "life_counter_tag", "state_dir", "history_db", "history_retention_days", "reserved",
     "advisory",
 )
-_TOP_KEYS = _TOP_REQUIRED
+_TOP_KEYS = _TOP_REQUIRED + ("northbound",)   # optional (issue 14, edge/northbound/config.py)
 _PLC_KEYS = ("host", "port", "device_id", "timeout_s", "reconnect_min_s", "reconnect_max_s",
              "max_read_gap", "close_after_poll", "pause_between_requests_s")
 

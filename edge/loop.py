@@ -146,6 +146,23 @@ class Advisor(Protocol):
         are (optional: an advisor without it never sets the storage_fault bit)."""
 
 
+class Observer(Protocol):
+    """Told about the gateway's life and every scan cycle (edge.health, edge.northbound).
+
+    All three are called on the event loop. ``cycle`` must return at once: an observer that
+    has real work (a network, a disk) hands it to its own thread or task. An observer that
+    raises is logged and never stops the loop or the advisory writes."""
+
+    async def start(self, gateway: Gateway) -> None:
+        """The gateway has started (before the first cycle)."""
+
+    def cycle(self, event: CycleEvent) -> None:
+        """One scan cycle has ended (its advisory write done or failed)."""
+
+    async def stop(self) -> None:
+        """The gateway is stopping (bounded: each observer gets ``shutdown_timeout_s``)."""
+
+
 @dataclass
 class Snapshot:
     """What the gateway shows right now (tests and the demo read it)."""
@@ -168,6 +185,26 @@ class Snapshot:
     storage_fault: str | None = None     # the advisor's, as of the last cycle
 
 
+@dataclass(frozen=True)
+class CycleEvent:
+    """What one scan cycle did, for observers (read-only; ``snapshot`` is the live object).
+
+    result : this cycle's poll (values, comm_error, duration)
+    rows : one-minute samples stored in this cycle, as ``Advisor.ingest`` returned them
+    advice : the calibration cycle collected in this cycle (any outcome, skipped ones too)
+    calibration_s : how long that calibration ran [s, on the gateway's monotonic clock]
+    duration_s : this cycle from the start of the poll to the end of the advisory write [s]
+    t_mono : end of the cycle on the gateway's monotonic clock [s]
+    """
+    snapshot: Snapshot
+    result: ReadResult
+    rows: tuple[dict, ...] = ()
+    advice: Advice | None = None
+    calibration_s: float | None = None
+    duration_s: float = 0.0
+    t_mono: float = 0.0
+
+
 class Gateway:
     """The daemon. ``await Gateway(cfg, ...).run()`` runs until ``request_stop()`` or a signal.
 
@@ -186,6 +223,7 @@ class Gateway:
         in tests)
     required_tags : tags whose flat line or staleness sets sensor_fault (default: every
         aggregated tag; the service passes the model's required inputs)
+    observers : told after every cycle (``Observer``: the health endpoint, the MQTT publisher)
     """
 
     def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
@@ -193,7 +231,8 @@ class Gateway:
                  monotonic: Callable[[], float] = time.monotonic, install_signals: bool = True,
                  shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None,
                  clock: ClockPolicy | None = None, host_clock: Callable[[], float] = time.time,
-                 required_tags: Iterable[str] | None = None) -> None:
+                 required_tags: Iterable[str] | None = None,
+                 observers: Iterable[Observer] = ()) -> None:
         if time_source not in TIME_SOURCES:
             raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
         tag_names = {t.name for t in cfg.tags}
@@ -239,6 +278,10 @@ class Gateway:
         self._saved_signals: dict[int, Any] = {}
         self.exit_code = 0
         self.notifier = notifier or Notifier()
+        self.observers: list[Observer] = list(observers)
+        self._observer_log = RepeatLog(log, "observer", level=logging.ERROR, monotonic=monotonic)
+        self._calibration_started = math.nan          # monotonic start of the running one
+        self._calibration_s: float | None = None      # duration of the last finished one
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -269,6 +312,13 @@ class Gateway:
             self._advice = restored
             self._calibration_due = restored.t + self.cfg.calibration_interval_s
             log.info("restored advice of %s", _fmt_time(restored.t))
+        for obs in list(self.observers):
+            try:
+                await obs.start(self)
+            except Exception as exc:  # noqa: BLE001 - a port in use must not stop the advisory
+                log.error("%s did not start, the gateway runs without it: %s",
+                          type(obs).__name__, exc)
+                self.observers.remove(obs)
         self.notifier.ready()
         log.info("gateway started: PLC %s:%s, scan %g s, sample clock %s, optimizer %s",
                  self.plc.plc.host, self.plc.plc.port, self.cfg.scan_interval_s,
@@ -289,6 +339,12 @@ class Gateway:
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
         await self.plc.close()
+        for obs in self.observers:
+            try:
+                await asyncio.wait_for(obs.stop(), self.shutdown_timeout_s)
+            except Exception as exc:  # noqa: BLE001 - stopping goes on for the others
+                log.error("%s did not stop cleanly: %s", type(obs).__name__, exc or
+                          type(exc).__name__)
         self._restore_signal_handlers()
         log.info("gateway stopped after %d cycles", self.snapshot.cycles)
 
@@ -348,6 +404,7 @@ class Gateway:
         """One scan cycle: read, aggregate, store, calibrate (in the background), write."""
         if not self._stop.is_set():
             self._wake.clear()  # before collecting: a calibration finishing later wakes us again
+        t_begin = self._mono()
         result = await self.plc.read_all()
         t_mono = self._mono()
         t_sample = self._check_clock(self._sample_time(result), t_mono)
@@ -356,9 +413,10 @@ class Gateway:
         if result.comm_error is not None:
             self._comm_since_write = True
         samples = self.aggregator.add(t_sample, t_mono, result.values, result.comm_error)
+        rows: list[dict] = []
         if samples:
-            await self._ingest(samples)
-        self._collect_calibration()
+            rows = await self._ingest(samples)
+        advice, calibration_s = self._collect_calibration(), self._calibration_s
         self._maybe_start_calibration()
         fresh = self.aggregator.freshness(t_mono)
         bits = self._status_bits(result, fresh)
@@ -368,8 +426,31 @@ class Gateway:
         self.notifier.alive()
         snap.comm_error = result.comm_error
         snap.last_scan = {n: v.value for n, v in result.values.items()}
+        if self.observers:
+            t_end = self._mono()
+            self._notify(CycleEvent(snap, result, tuple(rows), advice,
+                                    calibration_s if advice is not None else None,
+                                    t_end - t_begin, t_end))
         self.changed.set()
         self.changed = asyncio.Event()
+
+    def _notify(self, event: CycleEvent) -> None:
+        failed = None
+        for obs in self.observers:
+            try:
+                obs.cycle(event)
+            except Exception as exc:  # noqa: BLE001 - an observer's bug never stops the loop
+                failed = f"{type(obs).__name__}.cycle raised {type(exc).__name__}: {exc}"
+                log.debug("observer failed", exc_info=True)
+        if failed:
+            self._observer_log.fail(failed)
+        else:
+            self._observer_log.ok()
+
+    @property
+    def monotonic(self) -> Callable[[], float]:
+        """The clock of the scan cadence and of freshness (observers measure ages on it)."""
+        return self._mono
 
     def _sample_time(self, result: ReadResult) -> float | None:
         if self.time_source == "wall":
@@ -399,9 +480,10 @@ class Gateway:
             self._last_sample_end = None    # samples of the old clock schedule nothing now
         return v.t
 
-    async def _ingest(self, samples: list[Sample]) -> None:
+    async def _ingest(self, samples: list[Sample]) -> list[dict]:
+        rows: list[dict] = []
         try:
-            await asyncio.to_thread(self.advisor.ingest, samples)
+            rows = list(await asyncio.to_thread(self.advisor.ingest, samples) or ())
         except Exception as exc:  # noqa: BLE001 - disk full, sqlite, a bad sample: log, go on
             self.snapshot.errors += 1
             log.exception("processing or storing %d sample(s) failed: %s", len(samples), exc)
@@ -413,6 +495,7 @@ class Gateway:
                 if now is None or s.timestamp <= now]
         if ends:
             self._last_sample_end = max(ends)
+        return rows
 
     # ----------------------------------------------------------------------- calibration
 
@@ -434,16 +517,19 @@ class Gateway:
         self._calibration = loop.run_in_executor(self._executor, self.advisor.advise, t_end)
         self._calibration.add_done_callback(self._calibration_done)
         self._calibration_t = t_end
+        self._calibration_started = self._mono()
 
     def _calibration_done(self, fut: asyncio.Future) -> None:
         """Wake the loop to write new advice (or a failure) at once; a skip has nothing to show."""
+        self._calibration_s = self._mono() - self._calibration_started
         if fut.cancelled() or fut.exception() is not None or not fut.result().skipped:
             self._wake.set()
 
-    def _collect_calibration(self) -> None:
+    def _collect_calibration(self) -> Advice | None:
+        """The finished calibration cycle's outcome (None when none finished)."""
         fut = self._calibration
         if fut is None or not fut.done():
-            return
+            return None
         self._calibration = None
         t_end = self._calibration_t
         try:
@@ -461,7 +547,7 @@ class Gateway:
                     "calibration at %s skipped: %s", _fmt_time(t_end), adv.message)
             self._skipping = True
             self.snapshot.advice_message = adv.message
-            return
+            return adv
         self._skipping = False
         self._calibration_due = t_end + self.cfg.calibration_interval_s
         self._last_attempt = adv
@@ -475,6 +561,7 @@ class Gateway:
         else:
             log.warning("calibration cycle of %s failed, keeping the last good advice: %s",
                         _fmt_time(t_end), adv.message)
+        return adv
 
     # ----------------------------------------------------------------------------- output
 

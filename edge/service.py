@@ -478,10 +478,12 @@ class GatewayService:
             except (OSError, sqlite3.Error) as exc:
                 raise StartupError(f"history {cfg.history_db}: {exc}") from exc
             self.advisor = ModelAdvisor(cfg, self.store, state)
+            self.publisher, self.health = _northbound(cfg)
             self.gateway = Gateway(cfg, self.advisor, plc=plc, time_source=time_source,
                                    install_signals=install_signals,
                                    shutdown_timeout_s=shutdown_timeout_s, notifier=SdNotify(),
-                                   required_tags=measured.REQUIRED, clock=clock)
+                                   required_tags=measured.REQUIRED, clock=clock,
+                                   observers=[o for o in (self.health, self.publisher) if o])
         except BaseException:
             self.store.close()
             raise
@@ -491,3 +493,26 @@ class GatewayService:
             return await self.gateway.run()
         finally:
             self.store.close()
+
+
+def _northbound(cfg: GatewayConfig) -> tuple[Any, Any]:
+    """The MQTT publisher and the health endpoint when gateway.yaml enables them (issue 14),
+    else None. paho-mqtt and the Sparkplug codec are imported only here, and only when the
+    publisher is enabled (the optional extra 'northbound')."""
+    nb = cfg.northbound
+    publisher = health = None
+    if nb is not None and nb.mqtt_enabled:
+        try:
+            from edge.northbound.publisher import MqttPublisher
+        except ImportError as exc:
+            raise StartupError(f"{cfg.path}: northbound.mqtt is enabled but its libraries are "
+                               f"missing ({exc}); install them with pip install "
+                               "'hp-edge[northbound]'") from exc
+        publisher = MqttPublisher(nb.mqtt, cfg)
+    else:   # a publisher switched off leaves no queue growing in the history
+        from edge.northbound.outbox import detach
+        detach(cfg.history_db)
+    if nb is not None and nb.health_enabled:
+        from edge.health import HealthServer
+        health = HealthServer(nb.health, publisher=publisher)
+    return publisher, health

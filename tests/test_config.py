@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "config" / "gateway.yaml"
 TOP_KEYS = ("plc, tags_file, plant_file, scan_interval_s, aggregate_s, "
             "calibration_interval_s, calibration_window_h, min_window_samples, optimizer, "
-            "life_counter_tag, state_dir, history_db, history_retention_days, reserved, advisory")
+            "life_counter_tag, state_dir, history_db, history_retention_days, reserved, advisory, northbound")
 TAG_KEYS = ("register, address, type, byte_order, scale, offset, unit, range, max_age_s, "
             "sentinel, pressure, device_id, bit, flatline_s")
 TYPES = "int16, uint16, int32, uint32, float32, int64, uint64, float64, bool"

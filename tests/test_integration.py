@@ -429,9 +429,12 @@ def test_run_command_survives_kill_9_and_stops_on_sigterm(sims, commissioned, tm
 def test_bench_gateway_runs_and_reports_its_figures():
     """Smoke test of the benchmark (figures are for `hp-edge bench`, not asserted here)."""
     from edge.bench_gateway import bench_gateway
-    out = bench_gateway(plant_minutes=10, speed=600, warmup_minutes=10)
+    out = bench_gateway(plant_minutes=10, speed=600, warmup_minutes=10, outage_minutes=5,
+                        outage_speed=600)
     assert out["gateway_exit_code_on_sigterm"] == 0
     assert out["cycles"] > 0 and out["gateway_rss_mb"] > 0 and out["gateway_cpu_s"] > 0
+    assert out["northbound"]["mqtt_published_in_window"] > 0
+    assert out["northbound_outage"]["samples_stored_during_outage"] > 0
 
 
 def test_demo_stops_by_itself_shows_the_block_and_ends_with_a_report(capsys, tmp_path):

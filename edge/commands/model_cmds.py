@@ -140,6 +140,7 @@ def cmd_bench(args) -> int:
     known = {"model": ("model.bench", "bench_model"), "simulator": ("simulator.bench", "bench_simulator"),
              "analysis": ("model.bench_analysis", "bench_analysis"),
              "gateway": ("edge.bench_gateway", "bench_gateway"),
+             "advice": ("edge.bench_advice", "bench_advice"),
              "inputs": ("edge.bench_inputs", "bench_inputs")}
     unknown = [s for s in sections if s not in known]
     if unknown:

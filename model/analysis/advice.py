@@ -53,7 +53,7 @@ class AdviceSettings:
     min_coverage_share: float = 0.8     # of the window's samples inside the learned region
     max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
     dead_band_pct: float = 0.05         # move the recommendation only for more COP than this [%]
-    inside_tolerance: float = 0.75      # confident only when the optimum's compressor operating
+    inside_tolerance: float = 0.25      # confident only when the optimum's compressor operating
                                         # points (and its neighbours') lie within this many margins
                                         # of the bins the compressors have run in
     neighbour_bar: float = 0.5          # the neighbours checked on either side of the optimum
@@ -260,7 +260,12 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         # HS plateau the lower neighbour is the same operating point): otherwise the model's slope
         # there, which places the optimum, comes from the data sheet's curves
         probes = [sp_opt, sp_opt + s.neighbour_bar]
-        if not p_opt.hs_saturated:
+        pm = ev.at(sp_opt).frame["p_m_bar"].to_numpy(dtype=float) - amb
+        if p_opt.hs_saturated or np.any(pm > sp_opt + 0.01):
+            # on (or partly on) the HS plateau the set point does not move the plant below the
+            # floating p_m: what must be known is the plant just above the plateau
+            probes.append(float(np.nanmax(pm)) + s.neighbour_bar)
+        else:
             probes.append(sp_opt - s.neighbour_bar)
         d_opt = max(_distance(learner, adaptive, offsets, ev.at(min(max(x, lo), hi))) for x in probes)
         if d_opt > s.inside_tolerance:

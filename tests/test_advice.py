@@ -153,3 +153,24 @@ def test_the_gateway_and_replay_give_identical_window_results(plant, tmp_path):
             assert got.low_confidence == (not bool(w["advice_confident"]))
     finally:
         store.close()
+
+
+def test_a_drifting_flow_meter_makes_the_window_unusable_for_calibration(plant):
+    """Issue #9 item 17: a window whose measured heat balance Q_sink - Q_source - W does not close
+    within calibration.heat_balance_limit_pct (5 % of the heat output) is not calibrated, and says
+    why; the same window with the meter right is."""
+    from simulator.export import export_history
+    hist = export_history(0.25).history
+    chain, state, proc, *_ = _commissioned(plant, hist)
+    ts = pd.to_datetime(hist["timestamp"], utc=True)
+    m = proc["usable"].to_numpy() & (ts >= ts[0] + pd.Timedelta(hours=3)).to_numpy()
+    good = hist.loc[m].assign(timestamp=ts[m])
+    res = chain.window(good, state)
+    assert res.status == "ok" and abs(res.heat_balance_pct) < 1.0
+    drift = good.assign(V_sink=good["V_sink"] * 1.08)      # the sink flow meter reads 8 % high
+    bad = chain.window(drift, state)
+    assert bad.status.startswith("failed: measured heat balance does not close (+")
+    assert "limit 5 %): check the water flow meters and temperatures" in bad.status
+    assert 6.0 < bad.heat_balance_pct < 9.0
+    assert not bad.calibration_ok and not bad.optimization_ok
+    assert math.isnan(bad.R_th_f_K_per_kW)

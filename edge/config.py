@@ -41,7 +41,7 @@ __all__ = ["AdvisoryConfig", "AdvisoryField", "ConfigError", "GatewayConfig", "P
            "Reserved", "TagConfig", "load_config", "load_read_config", "find_config",
            "DEFAULT_CONFIG"]
 PRESSURE_UNITS = tuple(u for u, (q, _, _) in UNITS.items() if q == "pressure")
-OPTIMIZERS = ("model", "surrogate")
+OPTIMIZERS = ("model", "auto", "surrogate")
 DEVICE_IDS = (1, 255)   # 0 is the broadcast address: nobody answers it, everybody obeys it
 
 

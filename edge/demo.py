@@ -250,8 +250,11 @@ def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = Fa
     lines += [
         f"  recommended p_m,sp  {_f(blk.get('p_m_sp_rec'), '7.2f', 'bar(g)')}   set point now "
         f"{_f(sp_now, '.2f', 'bar(g)')}   truth optimum {_f(truth.get('p_m_sp_opt_bar_g'), '.2f', 'bar(g)')}",
-        f"  expected change     COP {_f(blk.get('dCOP_pct'), '+.2f', '%')}   heat output "
-        f"{_f(blk.get('dQ_sink_pct'), '+.2f', '%')}",
+        f"  expected change     COP {_f(blk.get('dCOP_pct'), '+.2f', '%')} (sd "
+        f"{_f(blk.get('dCOP_sd_pct'), '.2f', '%')})   heat output {_f(blk.get('dQ_sink_pct'), '+.2f', '%')}",
+        "  confidence          " + (("low: keep the current set point" + (
+            f" ({snap.advice_message[:90]})" if snap.advice_message else ""))
+            if "advice_low_confidence" in bits else ("confident" if has else "-")),
         f"  geometric-mean p_m  {_f(blk.get('p_m_gm'), '7.2f', 'bar(g)')}",
         f"  fouling R_th,f      {_f(_milli(blk.get('R_th_f')), '7.3f', 'e-3 K/kW')}   simulator truth "
         f"{_f(_milli(truth.get('R_th_f_K_per_kW')), '.3f', 'e-3 K/kW')}",
@@ -261,7 +264,9 @@ def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = Fa
         f"{_f(truth.get('CF_dp_f'), '.3f')}   fouling dp {_f(blk.get('dp_fouling'), '.3f', 'bar')}",
         f"  COP                 measured {_f(blk.get('COP_measured'), '.2f')}   adaptive model "
         f"{_f(blk.get('COP_adaptive'), '.2f')}   fixed model {_f(blk.get('COP_fixed'), '.2f')}",
-        f"  calibration NRMSE   {_f(blk.get('nrmse_pct'), '7.2f', '%')}",
+        f"  calibration NRMSE   {_f(blk.get('nrmse_pct'), '7.2f', '%')}   compressor eta_is vs "
+        f"commissioning LS {_f(blk.get('eta_is_LS_drift'), '+.2f')} HS "
+        f"{_f(blk.get('eta_is_HS_drift'), '+.2f')} points",
         f"history and log in {where}" + ("  (temporary)" if "hp-edge-demo-" in str(where) else ""),
     ]
     if final:

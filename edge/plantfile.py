@@ -54,7 +54,7 @@ PLANT_SCHEMA: dict = {
         "fouling": _CALIBRATION_KIND,
         "replay": dict.fromkeys(("window_hours", "min_samples", "initial_minutes",
                                  "cip_off_minutes", "cip_windows", "max_gap_minutes", "optimize",
-                                 "dp_form", "hindsight")),
+                                 "dp_form", "hindsight", "surrogate")),
         "heat_balance_limit_pct": None,
     },
     # the set-point advice (model.analysis.advice.AdviceSettings) and the compressor learning
@@ -66,6 +66,10 @@ PLANT_SCHEMA: dict = {
         "enabled", "half_life_days", "prior_weight", "min_samples", "bin_pi", "bin_n",
         "min_bin_weight", "margin_pi", "margin_n", "T_c_location", "subcooling_threshold_K",
         "eta_range")),
+    # the surrogate fitted from the analysis windows' optima (model.analysis.surrogate_tracker)
+    "surrogate_tracker": dict.fromkeys(("enabled", "reference_p_m_sp_barg", "extra_fouling_K_per_kW",
+                                        "refit_every", "qualified_every", "max_rows", "min_rows",
+                                        "test_share", "min_r2", "pm_tol_bar", "min_share")),
     "surrogate": dict.fromkeys(("reference_p_m_sp_barg", "fouling_levels_K_per_kW",
                                 "points_per_level", "T_source_in_C", "source_cooling_K",
                                 "T_sink_in_C", "V_source_m3h", "V_sink_m3h", "seed")),
@@ -106,6 +110,7 @@ def _value_problems(d: dict) -> list[str]:
     from model.analysis.advice import AdviceError
     from model.analysis.chain import ChainSettings
     from model.analysis.compressors import LearningError
+    from model.analysis.surrogate_tracker import TrackerError
     from model.analysis.replay import ReplayError, ReplaySettings
     from model.surrogate import SurrogateError, design_from_config
 
@@ -119,7 +124,7 @@ def _value_problems(d: dict) -> list[str]:
         try:
             check()
         except (CalibrationError, ReplayError, SurrogateError, AdviceError, LearningError,
-                ValueError, TypeError, OverflowError) as exc:
+                TrackerError, ValueError, TypeError, OverflowError) as exc:
             out.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
     return out
 

@@ -44,6 +44,7 @@ from edge.store import HistoryStore
 from model import measured
 from model.analysis.chain import AnalysisChain, ChainSettings, WindowResult
 from model.analysis.compressors import CompressorLearner, LearningError
+from model.analysis.surrogate_tracker import SurrogateTracker, TrackerError
 from model.batch import INPUT_COLUMNS, simulate_batch, solved_mask
 from model.calibration import CalibrationError, spec_from_config
 from model.optimize import OptimizationError
@@ -68,6 +69,7 @@ class ModelState:
     surrogate: dict | None = None
     compressors: dict | None = None
     chain: dict | None = None
+    tracker: dict | None = None
 
 
 class StartupError(Exception):
@@ -103,7 +105,9 @@ class StateDir:
             raise StartupError(str(exc)) from exc
         for attr, name, what in (("fouling", statefiles.FOULING_CALIBRATION, "a fouling calibration"),
                                  ("compressors", statefiles.COMPRESSORS, "learned compressor curves"),
-                                 ("chain", statefiles.CHAIN, "the previous window's state")):
+                                 ("chain", statefiles.CHAIN, "the previous window's state"),
+                                 ("tracker", statefiles.SURROGATE_TRACKER,
+                                  "the surrogate tracker's rows")):
             try:     # the gateway's own results: an unreadable one is recomputed, not fatal
                 setattr(st, attr, statefiles.read_state(name, self.dir))
             except StateError as exc:
@@ -151,7 +155,7 @@ class ModelAdvisor:
             self.spec = spec_from_config(self.base.extra, "fouling")
             self.chain = AnalysisChain(self.base, self.spec, ChainSettings.from_config(
                 self.base.extra, min_samples=int(cfg.min_window_samples),
-                optimize=cfg.optimizer == "model"))
+                optimize=cfg.optimizer in ("model", "auto"), use_surrogate=cfg.optimizer == "auto"))
             learner = (CompressorLearner.from_dict(self.state.compressors, self.base,
                                                    self.chain.s.learning)
                        if self.state.compressors is not None else None)
@@ -214,10 +218,16 @@ class ModelAdvisor:
 
     def _restore_chain(self, doc: dict | None) -> None:
         """The previous window's hand-over (previous recommendation, condenser factor, LS set
-        point, change-penalty parameters) from chain_state.json."""
+        point, change-penalty parameters) from chain_state.json, and the surrogate tracker."""
+        st = self.cstate
+        if self.state.tracker is not None and st.tracker is not None:
+            try:
+                st.tracker = SurrogateTracker.from_dict(self.state.tracker, self.chain.s.tracker)
+            except TrackerError as exc:     # the gateway's own result: start over, not fatal
+                log.error("%s in %s: the surrogate tracker starts over", exc,
+                          getattr(self.state_io, "dir", "?"))
         if not doc:
             return
-        st = self.cstate
         for key in ("last_rec_barg", "cond_factor", "T_out_sp_C"):
             v = doc.get(key)
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
@@ -305,6 +315,8 @@ class ModelAdvisor:
                 statefiles.CHAIN: self._chain_doc()}
         if self.cstate.learner is not None:
             docs[statefiles.COMPRESSORS] = self.cstate.learner.to_dict()
+        if self.cstate.tracker is not None:
+            docs[statefiles.SURROGATE_TRACKER] = self.cstate.tracker.to_dict()
         self._save_state(docs)          # disk full, read-only: kept, retried, storage_fault
         self.state.fouling = res.detail["calibration"]
         values = res.advisory_values()

@@ -23,7 +23,9 @@ DP_CLEAN = "dp_clean.json"
 SURROGATE = "surrogate.json"
 COMPRESSORS = "compressors.json"          # learned compressor curves (model.analysis.compressors)
 CHAIN = "chain_state.json"                # what one analysis window hands to the next
-KNOWN = (INITIAL_CALIBRATION, FOULING_CALIBRATION, DP_CLEAN, SURROGATE, COMPRESSORS, CHAIN)
+SURROGATE_TRACKER = "surrogate_tracker.json"  # window optima and the surrogate fitted on them
+KNOWN = (INITIAL_CALIBRATION, FOULING_CALIBRATION, DP_CLEAN, SURROGATE, COMPRESSORS, CHAIN,
+         SURROGATE_TRACKER)
 _NAME = re.compile(r"^[a-z0-9_]+\.json$")
 
 

@@ -55,7 +55,7 @@ BOUND_MARGIN = 0.05       # bar, kept clear of p_e and p_c
 PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
 SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
 COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP",
-           "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C")
+           "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C", "eta_is_LS", "eta_is_HS")
 
 
 class OptimizationError(ValueError):

@@ -264,7 +264,7 @@ class PlantParams:
             CF_dp_f=collect(calnum, "CF_dp_f", 1.0),
             extra={k: v for k, v in d.items()
                    if k in ("calibration", "optimization", "surrogate", "advice", "compressor_learning",
-                            "cip")},
+                            "surrogate_tracker", "cip")},
         )
         if errors:
             raise ParamError("\n".join(errors))

@@ -40,7 +40,7 @@ def test_default_config_loads():
     assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2))
     assert adv.field("last_update").type == "uint32"
     assert dict(adv.status_bits)[5] == "comm_fault"
-    assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "model"
+    assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "auto"
     assert cfg.plant is None                       # not loaded when load_plant=False
 
 
@@ -219,7 +219,7 @@ CASES = {
                  "reconnect_min_s 1"]),
     "optimizer": ("gateway.yaml", lambda d: d.update(optimizer="surrogat"),
                   ["config/gateway.yaml: top level: key 'optimizer': 'surrogat' is not one of model, "
-                   "surrogate"]),
+                   "auto, surrogate"]),
     "window too small": ("gateway.yaml", lambda d: d.update(min_window_samples=121),
                          ["config/gateway.yaml: top level: key 'min_window_samples': 121 exceeds the "
                           "120 samples a 2 h window of 60 s samples can hold; calibration would never run"]),

@@ -13,6 +13,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from edge.advisory import decode_advisory
@@ -452,7 +453,7 @@ def advisor_for(tmp_path, **kw):
         raise
 
 
-@pytest.mark.parametrize("optimizer", ["model", "surrogate"])
+@pytest.mark.parametrize("optimizer", ["model", "auto", "surrogate"])
 def test_model_advisor_ingests_calibrates_optimizes_and_restores(plant_minutes, tmp_path,
                                                                  optimizer):
     adv, store = advisor_for(tmp_path, optimizer=optimizer)
@@ -480,6 +481,9 @@ def test_model_advisor_ingests_calibrates_optimizes_and_restores(plant_minutes, 
             assert a.low_confidence and a.values["p_m_sp_rec"] == pytest.approx(16.0, abs=0.01)
             assert (tmp_path / "state" / "compressors.json").exists()
             assert (tmp_path / "state" / "chain_state.json").exists()
+            assert a.detail["window"]["optimizer"] == "search"
+            # the tracker runs (and is saved) with optimizer: auto only
+            assert (tmp_path / "state" / "surrogate_tracker.json").exists() == (optimizer == "auto")
         assert adv.has_calibration and (tmp_path / "state" / "fouling_calibration.json").exists()
     finally:
         store.close()
@@ -488,6 +492,49 @@ def test_model_advisor_ingests_calibrates_optimizes_and_restores(plant_minutes, 
         r = again.restored()
         assert again.has_calibration
         assert r.t == t_end and r.values["R_th_f"] == pytest.approx(a.values["R_th_f"])
+    finally:
+        store.close()
+
+
+def _qualified_tracker_doc(p_m_opt_bar_a: float) -> dict:
+    """A tracker whose forms qualified on rows spanning any plausible operation, with the optimum
+    at p_m_opt_bar_a +- 0.03 bar (what the gateway then must take in place of its search)."""
+    from model.analysis.surrogate_tracker import SurrogateTracker, TrackerSettings
+    rng = np.random.default_rng(11)
+    rows = []
+    for i in range(100):
+        p_c = rng.uniform(10.0, 70.0)
+        rows.append({"eta_is_product": rng.uniform(0.2, 0.95), "p_e_bar_a": rng.uniform(1.0, 12.0),
+                     "p_c_bar_a": p_c, "V_sink_m3h": rng.uniform(5.0, 400.0),
+                     "T_sink_in_C": rng.uniform(5.0, 95.0), "p_m_opt_bar_a": p_m_opt_bar_a + 1e-3 * (p_c - 40.0),
+                     "dCOP_pct": 1.0 + 0.01 * p_c, "t": 3600.0 * i})
+    tr = SurrogateTracker(TrackerSettings())
+    tr.add(rows)
+    tr.refit()
+    assert tr.qualified is not None
+    return tr.to_dict()
+
+
+def test_auto_optimizer_takes_the_qualified_surrogate_and_keeps_learning(plant_minutes, tmp_path):
+    """optimizer: auto: with a qualified tracker in the state directory the window's optimum is the
+    surrogate's (here a constant 14 bar a, 12.99 bar(g)), the rest of the advice is the chain's,
+    and the tracker (with this window's row) is saved for the next start."""
+    from edge import statefiles
+    statefiles.write_state(statefiles.SURROGATE_TRACKER, _qualified_tracker_doc(14.0), tmp_path / "state")
+    adv, store = advisor_for(tmp_path, optimizer="auto")
+    try:
+        adv.ingest(plant_minutes)
+        a = adv.advise(plant_minutes[-1].timestamp + 60)
+        assert a.ok, a.message
+        w = a.detail["window"]
+        assert w["optimizer"] == "surrogate:extended"
+        amb = adv.base.ambient_pressure / 1e5
+        assert a.detail["advice"]["p_m_sp_model_opt_barg"] == pytest.approx(14.0 - amb, abs=0.03) \
+            or a.detail["advice"]["hs_saturated"]
+        assert a.low_confidence == (not a.detail["advice"]["confident"])
+        doc = json.loads((tmp_path / "state" / "surrogate_tracker.json").read_text())
+        assert len(doc["rows"]) == 100         # qualified: rows only every qualified_every-th window
+        assert doc["windows"] == 1
     finally:
         store.close()
 

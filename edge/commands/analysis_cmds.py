@@ -428,7 +428,7 @@ def cmd_replay(args) -> int:
     from pathlib import Path
     from edge.plantfile import PlantFileError
     from edge.statefiles import (COMPRESSORS, DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION,
-                                 StateError, write_state)
+                                 SURROGATE_TRACKER, StateError, write_state)
     from model.calibration import CalibrationError
     from model.dpfit import DpFitError
     from model.analysis.replay import ReplayError, ReplaySettings, replay
@@ -457,6 +457,8 @@ def cmd_replay(args) -> int:
         write_state("meta.json", meta, out)
         if res.compressors is not None:
             write_state(COMPRESSORS, res.compressors, out)
+        if res.surrogate_tracker is not None:
+            write_state(SURROGATE_TRACKER, res.surrogate_tracker, out)
         text = res.summary()
         if skipped or nn:
             text = (f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}\n"
@@ -471,10 +473,13 @@ def cmd_replay(args) -> int:
                 write_state(FOULING_CALIBRATION, res.last_fouling.to_dict(), args.save_state)
             if res.compressors is not None:
                 write_state(COMPRESSORS, res.compressors, args.save_state)
+            if res.surrogate_tracker is not None:
+                write_state(SURROGATE_TRACKER, res.surrogate_tracker, args.save_state)
     except (CommandError, PlantFileError, ReplayError, CalibrationError, DpFitError, StateError,
             OSError) as exc:
         return _fail("replay", exc)
     print(text)
     print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'samples.csv'}, "
-          f"{out / 'summary.txt'}, {out / 'compressors.json'}, {out / 'meta.json'}")
+          f"{out / 'summary.txt'}, {out / 'compressors.json'}, {out / 'surrogate_tracker.json'}, "
+          f"{out / 'meta.json'}")
     return 0

@@ -101,6 +101,7 @@ class AdviceResult:
     n_samples: int
     n_eval_rows: int
     evaluations: int
+    optimizer: str = "search"        # "search" | "surrogate" (the tracker's qualified form)
 
 
 def _operating_points(p: Point, params: PlantParams) -> dict:
@@ -161,12 +162,15 @@ def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> P
 def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
            settings: AdviceSettings, previous_rec_barg: float | None = None,
            coverage_share: float = 1.0, curve_residual: dict | None = None,
-           R_th_f_se_K_per_kW: float = 0.0, measured: dict | None = None) -> AdviceResult:
+           R_th_f_se_K_per_kW: float = 0.0, measured: dict | None = None,
+           sp_override: float | None = None) -> AdviceResult:
     """The advice for the window ``data`` (canonical inputs) on the adaptive model ``adaptive``
     (learned curves applied). ``coverage_share`` and ``curve_residual`` come from the chain (they
     need the measured side), and ``measured`` the per-sample compressor operating points
-    ({"pi_LS": array, "n_LS": array, ...}, NaN where unknown); raises OptimizationError when nothing
-    can be optimised."""
+    ({"pi_LS": array, "n_LS": array, ...}, NaN where unknown). ``sp_override``: the optimum from
+    elsewhere (the qualified surrogate, bar(g)) in place of the search, used when it solves and lies
+    in the trusted region (otherwise the search runs, and the note says why). Raises
+    OptimizationError when nothing can be optimised."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
@@ -203,7 +207,17 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
     feasible = _feasible(learner, adaptive, offsets)
     actual = float(data["p_m_sp"].mean())
-    sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
+    optimizer, sp_opt, p_opt = "search", None, None
+    if sp_override is not None and math.isfinite(sp_override):
+        p = ev.at(min(max(float(sp_override), lo), hi))
+        if p.ok and (feasible is None or feasible(p)):
+            optimizer, sp_opt, p_opt = "surrogate", p.sp, p
+            p_opt.beyond = None
+            if p.hs_saturated:      # the plateau convention of the search
+                p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w))
+                sp_opt = p_m - amb
+    if sp_opt is None:
+        sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
     # dead band against the previous recommendation (if it is still a valid candidate here)
     sp_rec, note = sp_opt, ""
     if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
@@ -302,4 +316,4 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         dQ_sink_gm_pct=100.0 * (rec.Q_sink_kW / gm_p.Q_sink_kW - 1.0) if gm_p.ok else math.nan,
         COP_actual_model=ref.COP, hs_saturated=bool(p_opt.hs_saturated) and sp_rec == sp_opt,
         coverage_share=float(coverage_share), curve_residual=dict(resid), n_samples=len(data),
-        n_eval_rows=len(rows), evaluations=ev.evals + full.evals)
+        n_eval_rows=len(rows), evaluations=ev.evals + full.evals, optimizer=optimizer)

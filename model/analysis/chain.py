@@ -35,6 +35,7 @@ from ..params import PlantParams
 from ..units import BAR, M3H
 from .advice import AdviceResult, AdviceSettings, advise
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
+from .surrogate_tracker import SurrogateTracker, TrackerSettings
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
 LS_SATURATED_RPM = 15.0     # a measured LS speed this close to its maximum: at the limit
@@ -50,6 +51,8 @@ class ChainSettings:
     figure_rows: int = 40                       # samples (evenly spaced) the model figures simulate
     advice: AdviceSettings = AdviceSettings()
     learning: LearningSettings = LearningSettings()
+    tracker: TrackerSettings = TrackerSettings()
+    use_surrogate: bool = False                 # the tracker's qualified form in place of the search
 
     @classmethod
     def from_config(cls, extra: dict | None, **overrides) -> "ChainSettings":
@@ -57,7 +60,8 @@ class ChainSettings:
         extra = extra or {}
         learning = LearningSettings.from_dict(extra.get("compressor_learning"))
         kw = dict(advice=AdviceSettings.from_dict(extra.get("advice")), learning=learning,
-                  learn_compressors=learning.enabled)
+                  learn_compressors=learning.enabled,
+                  tracker=TrackerSettings.from_dict(extra.get("surrogate_tracker")))
         hb = (extra.get("calibration") or {}).get("heat_balance_limit_pct")
         if hb is not None:
             if isinstance(hb, bool) or not isinstance(hb, (int, float)) or not hb > 0:
@@ -78,6 +82,7 @@ class ChainState:
     last_fouling: CalibrationResult | None = None
     cond_factor: float | None = None            # last window's condenser-unit factor
     T_out_sp_C: float | None = None             # the LS speed controller's T_source,out set point
+    tracker: SurrogateTracker | None = None     # the surrogate fitted from the window optima
 
 
 @dataclass
@@ -123,6 +128,7 @@ class WindowResult:
     dCOP_gm_pct: float = math.nan
     dQ_sink_gm_pct: float = math.nan
     hs_saturated_opt: bool = False
+    optimizer: str = ""                         # "search" | "surrogate:basic" | "surrogate:extended"
     advice_confident: bool = False
     advice_note: str = ""
     optimization_ok: bool = False
@@ -262,7 +268,9 @@ class AnalysisChain:
         fixed = self.fixed_model(initial, dp_clean)
         if learner is None and self.s.learn_compressors:
             learner = CompressorLearner(fixed, self.s.learning)
-        return ChainState(fixed=fixed, learner=learner)
+        tracker = (SurrogateTracker(self.s.tracker)
+                   if self.s.tracker.enabled and self.s.optimize and self.s.use_surrogate else None)
+        return ChainState(fixed=fixed, learner=learner, tracker=tracker)
 
     def commissioning_learner(self, data: pd.DataFrame) -> CompressorLearner | None:
         """The compressor curves learned on the commissioning window (frozen as the drift
@@ -393,18 +401,41 @@ class AnalysisChain:
             if obs is not None:
                 measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
                             for st in STAGES for q in ("pi", "n")}
+            # the surrogate fitted from earlier windows' optima, once it qualifies (issue #8 item 7)
+            ev_rows, ev_w = self._evaluation_rows(adv_in)
+            override, used = None, None
+            if self.s.use_surrogate and state.tracker is not None:
+                pred = state.tracker.predict_setpoint(ev_rows, ev_w, adaptive)
+                if pred is not None:
+                    override, used = pred
             try:
                 adv = advise(adv_in, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
                              coverage_share=res.coverage_share if learner is not None else 1.0,
                              curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
-                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured)
+                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured,
+                             sp_override=override)
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
                 return res
             self._advice_figures(res, adv)
+            res.optimizer = (f"surrogate:{used['form']}" if adv.optimizer == "surrogate" and used
+                             else "search")
+            if used is not None:
+                res.detail["surrogate"] = used
             if adv.confident:
                 state.last_rec_barg = adv.p_m_sp_rec_barg
+            if state.tracker is not None:
+                state.tracker.window(ev_rows, ev_w, adaptive, res.t_end)
         return res
+
+    def _evaluation_rows(self, adv_in: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
+        """The window's representative rows and weights, as the advice evaluates them."""
+        data = adv_in[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+        k = int(self.s.advice.check_rows)
+        keep = np.unique(np.linspace(0, len(data) - 1, min(k, len(data))).round().astype(int))
+        data = data.iloc[keep].reset_index(drop=True)
+        n = self.s.advice.representative_points
+        return representative(data, n, groups(data, n))
 
     def _fouling_figures(self, res: WindowResult, fc: CalibrationResult, fixed: PlantParams,
                          adaptive: PlantParams, der: pd.DataFrame) -> None:

@@ -59,6 +59,8 @@ class ReplaySettings:
     optimize: bool = True
     dp_form: str = "auto"
     hindsight: bool = False           # learn the compressors on the whole history first
+    surrogate: bool = True            # as the gateway's "optimizer: auto": the surrogate fitted
+                                      # from the windows' optima replaces the search once it qualifies
 
     @classmethod
     def from_config(cls, extra: dict | None, **overrides) -> "ReplaySettings":
@@ -105,6 +107,7 @@ class ReplayResult:
     notes: list[str] = field(default_factory=list)
     samples: pd.DataFrame | None = None   # per-minute series (SAMPLE_COLUMNS)
     compressors: dict | None = None       # the learner's state at the end (compressors.json)
+    surrogate_tracker: dict | None = None  # the tracker's rows and fits at the end
     meta: dict = field(default_factory=dict)
 
     def summary(self) -> str:
@@ -158,6 +161,16 @@ class ReplayResult:
                 loc = self.compressors.get("T_c_location", "")
                 L.append(f"  T_c is read as the {loc.replace('_', ' ')}; drive factors LS "
                          f"{ok['drive_factor_LS'].iloc[-1]:.3f}, HS {ok['drive_factor_HS'].iloc[-1]:.3f}")
+            tr = self.meta.get("surrogate_tracker")
+            if tr:
+                fits = "; ".join(
+                    f"{k}: R2 p_m,opt {f['r2'].get('p_m_opt_bar_a', float('nan')):.4f}, dCOP "
+                    f"{f['r2'].get('dCOP_pct', float('nan')):.4f}, {100 * f['share_within_tol']:.0f} % "
+                    f"within 0.3 bar{' (qualified)' if f['qualified'] else ''}"
+                    for k, f in tr["fits"].items()) or "no fit yet"
+                used = int(ok["optimizer"].astype(str).str.startswith("surrogate").sum())
+                L.append(f"  surrogate from the window optima: {tr['rows']} rows; {fits}; used in "
+                         f"{used} windows")
         if len(self.cips):
             L.append(f"CIPs: {len(self.cips)}")
             for _, c in self.cips.iterrows():
@@ -259,7 +272,8 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     init_data = calibration_frame(history, processed, init_mask)
     chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
                           chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
-                                                                      min_samples=int(s.min_samples)))
+                                                                      min_samples=int(s.min_samples),
+                                                                      use_surrogate=bool(s.surrogate)))
     learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
     base = learner.apply(params) if learner is not None else params
     initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
@@ -301,13 +315,15 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     meta = {"period_start": ts[0].isoformat(), "period_end": ts[-1].isoformat(),
             "n_rows": int(len(history)), "n_usable": int(usable.sum()),
             "unusable": usable_counts(processed), "settings": asdict(s)}
+    if state.tracker is not None:
+        meta["surrogate_tracker"] = state.tracker.summary()
     return ReplayResult(
         windows=windows, cips=pd.DataFrame(cip_rows, columns=list(CIP_COLUMNS)), initial=initial,
         dp_clean=dpfit, n_rows=len(history), n_usable=int(usable.sum()),
         unusable=usable_counts(processed), windows_skipped=skipped, initial_window=iw,
         run_time_s=time.perf_counter() - t0, settings=s, last_fouling=state.last_fouling, notes=notes,
         samples=samples, compressors=state.learner.to_dict() if state.learner is not None else None,
-        meta=meta)
+        surrogate_tracker=state.tracker.to_dict() if state.tracker is not None else None, meta=meta)
 
 
 def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.DataFrame,

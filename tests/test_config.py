@@ -610,3 +610,19 @@ def test_a_path_too_long_for_the_file_system_is_a_problem(cfgdir):
     edit(cfgdir, "gateway.yaml", lambda d: d.update(tags_file="y" * 5000))
     assert problems() == ["config/gateway.yaml: top level: key 'tags_file': not a usable path: "
                           "File name too long"]
+
+
+def test_plant_schema_knows_every_setting_of_the_analysis_sections():
+    """Every key the analysis settings accept is a key plant.yaml's schema accepts (a key missing
+    from the schema would be refused as unknown before the settings see it)."""
+    from dataclasses import fields
+
+    from edge.plantfile import PLANT_SCHEMA
+    from model.analysis.advice import AdviceSettings
+    from model.analysis.compressors import LearningSettings
+    from model.analysis.replay import ReplaySettings
+    from model.analysis.surrogate_tracker import TrackerSettings
+    for section, cls in (("advice", AdviceSettings), ("compressor_learning", LearningSettings),
+                         ("surrogate_tracker", TrackerSettings)):
+        assert set(PLANT_SCHEMA[section]) == {f.name for f in fields(cls)}, section
+    assert set(PLANT_SCHEMA["calibration"]["replay"]) == {f.name for f in fields(ReplaySettings)}

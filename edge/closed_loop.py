@@ -246,7 +246,8 @@ def _tag(sec, key: str, name: str | None, by_name: dict, names: set, tags_file: 
 def _check_setpoint_tag(sec, t):
     where = f"tag '{t.name}'"
     if t.register != "holding":
-        sec.problem("setpoint_tag", f"{where} is a {t.register} {'bit' if t.register in BIT_SPACES else 'register'}: "
+        kind = f"{t.register} {'bit' if t.register in BIT_SPACES else 'register'}"
+        sec.problem("setpoint_tag", f"{where} is {'an' if kind[0] in 'aeiou' else 'a'} {kind}: "
                     "the set point is written with FC16 and must be a holding register")
         return None
     if t.bit is not None or t.type == BOOL:
@@ -475,7 +476,10 @@ class ClosedLoop:
                 return s
             s.bad_scans = 0
             self._written_words = None
+            # the first write waits for the next scan: the PLC's program sees the same edge in
+            # its own scan, and a write racing it would be refused (and shed the loop)
             await self._set(State.ARMED, Reason.NONE, "operator enabled")
+            return s
         # ---- armed or writing: are this scan's inputs usable?
         if result.comm_error is not None:
             return await self._bad_scan(Reason.BLOCKED_COMM_FAULT, f"poll failed: {result.comm_error}")
@@ -569,7 +573,6 @@ class ClosedLoop:
                  self.cfg.max_step_bar)
         await self._audit(_write_row(plan, target, "ok", "toward the recommendation"))
         await self._set(State.WRITING, Reason.STEPPED)
-        s.reason = Reason.STEPPED
 
 
 def _write_row(plan: Step, target: float, outcome: str, message: str) -> dict:

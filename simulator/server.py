@@ -555,6 +555,13 @@ class PlantSimulator:
             raise RuntimeError("no enable register (remote_setpoint.enable_tag) or not started")
         await self._context.async_setValues(self.cfg.device_id, 3, self.enable_spec.address, [int(bool(on))])
 
+    def set_local_setpoint(self, bar_g: float) -> None:
+        """The operator's local set point at the panel (clamped into control.p_m_sp_limits_bar_g):
+        the plant takes it in local mode; in remote mode it waits for the fallback. Without the
+        remote-set-point program the set-point register rules and this has no effect."""
+        lo, hi = self.cfg.control.p_m_sp_limits_bar_g
+        self.plant.local_sp_bar_g = min(max(float(bar_g), lo), hi)
+
     @property
     def remote_mode(self) -> bool:
         """The remote-set-point program's mode (False without the program)."""

@@ -40,15 +40,15 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 FAMILY = "speed_peak"
-PRELEARN_DAYS = 3.0
-PRELEARN_SCHEDULE = ((0.0, 16.0), (1.0, 10.0), (2.0, 13.0))
+PRELEARN_DAYS = 4.0
+PRELEARN_SCHEDULE = ((0.0, 16.0), (1.0, 10.0), (2.0, 13.0), (3.0, 9.0))
 LOCAL_SP = 16.0               # the operators' own set point (SPEC §2: p_m,sp 16 bar(g))
 HOURS = 24.0
 SPEED = 120.0                 # plant seconds per wall second
 SCAN_PLANT_S = 15.0           # the gateway's scan in plant seconds (0.125 s of wall time at 120x)
 HEARTBEAT_TIMEOUT_S = 2.0     # wall seconds (the PLC's TON), 16 scans at 120x
 LOOP = {"enabled": True, "setpoint_tag": "p_m_sp", "enable_tag": "closed_loop_enable",
-        "bounds_bar_g": [10.0, 18.0], "max_step_bar": 0.5, "min_interval_s": 300,
+        "bounds_bar_g": [8.0, 18.0], "max_step_bar": 0.5, "min_interval_s": 300,
         "deadband_bar": 0.05, "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S,
         "shed_after_bad_scans": 3}
 PLC_BOUNDS = (8.0, 22.0)
@@ -192,17 +192,40 @@ def judge_cop(truth_rows: list[dict], sim_cfg, t0: float, t1: float, baseline_sp
             "optimum_mean_bar_g": round(float(h["p_m_sp_opt"].mean()), 3)}
 
 
+def prelearn_config(family: str = FAMILY, schedule=PRELEARN_SCHEDULE):
+    """The simulator config of the pre-learning days (as edge.bench_advice.history builds it:
+    commissioning with a clean evaporator, the operators' schedule)."""
+    from simulator.config import load_simulator_config
+
+    cfg = load_simulator_config().with_compressor_family(family)
+    return replace(cfg, control=replace(cfg.control, p_m_sp_schedule=tuple(tuple(x) for x in schedule),
+                                        p_m_sp_bar_g=schedule[0][1]),
+                   fouling=replace(cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
+
+
 def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_DAYS,
                      schedule=PRELEARN_SCHEDULE):
     """Export and replay the pre-learning days; write the state documents the gateway starts
-    from. Returns (simulator config of the export, truth at its end, seconds)."""
+    from (kept: a state directory that holds them for the same family, days and schedule is
+    used as it is). Returns (simulator config of the export, truth at its end, seconds, the
+    replay's windows in brief)."""
+    import json
+
     from edge import statefiles
-    from edge.bench_advice import history
     from edge.plantfile import load_plant
     from model.analysis.replay import replay
+    from simulator.export import export_history
 
     t0 = time.perf_counter()
-    hist, truth, cfg = history(family, days, schedule)
+    cfg = prelearn_config(family, schedule)
+    key = {"family": family, "days": days, "schedule": [list(x) for x in schedule]}
+    done = state / "prelearn.json"
+    if done.exists():
+        doc = json.loads(done.read_text())
+        if doc.get("key") == key:
+            return cfg, doc["last"], time.perf_counter() - t0, {**doc["learned"], "cached": True}
+    res_export = export_history(days, cfg=cfg, with_truth=True)
+    hist, truth = res_export.history, res_export.truth
     res = replay(hist, load_plant())
     state.mkdir(parents=True, exist_ok=True)
     statefiles.write_state(statefiles.INITIAL_CALIBRATION, res.initial.to_dict(), state)
@@ -213,14 +236,18 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
         statefiles.write_state(statefiles.FOULING_CALIBRATION, res.last_fouling.to_dict(), state)
     w = res.windows
     ok = w[w["status"] == "ok"]
-    return cfg, truth.iloc[-1].to_dict(), time.perf_counter() - t0, {
-        "windows": int(len(w)), "confident_last_12": int(ok["advice_confident"].tail(12).sum())}
+    end = truth.iloc[-1]
+    last = {k: float(end[k]) for k in ("t", "R_th_f_K_per_kW", "CF_dp_f")}
+    learned = {"windows": int(len(w)), "confident_last_12": int(ok["advice_confident"].tail(12).sum()),
+               "last_recommendations_bar_g": [round(float(x), 2) for x in ok["p_m_sp_opt_barg"].tail(6)]}
+    done.write_text(json.dumps({"key": key, "last": last, "learned": learned}))
+    return cfg, last, time.perf_counter() - t0, learned
 
 
 # ------------------------------------------------------------------------------ the run
 
 
-async def _day(work: Path, hours: float, speed: float, family: str) -> dict:
+async def _day(work: Path, hours: float, speed: float, family: str, local_sp: float) -> dict:
     from datetime import datetime, timezone
 
     from edge.advisory import decode_advisory
@@ -228,8 +255,17 @@ async def _day(work: Path, hours: float, speed: float, family: str) -> dict:
     from simulator.server import PlantSimulator
 
     out: dict = {"family": family, "hours": hours, "speed": speed, "loop": LOOP,
-                 "plc_bounds_bar_g": list(PLC_BOUNDS), "local_set_point_bar_g": LOCAL_SP}
-    cfg, last, secs, learned = await asyncio.to_thread(prelearned_state, work / "state", family)
+                 "plc_bounds_bar_g": list(PLC_BOUNDS), "local_set_point_bar_g": local_sp}
+    import shutil
+
+    cfg, last, secs, learned = await asyncio.to_thread(prelearned_state, work / "prelearn", family)
+    shutil.rmtree(work / "state", ignore_errors=True)       # a fresh gateway each run
+    for old in work.glob("history.sqlite*"):
+        old.unlink()
+    (work / "state").mkdir()
+    for doc in (work / "prelearn").glob("*.json"):
+        if doc.name != "prelearn.json":
+            shutil.copy(doc, work / "state" / doc.name)
     out["prelearn"] = {"days": PRELEARN_DAYS, "schedule_days_barg": [list(x) for x in PRELEARN_SCHEDULE],
                        "seconds": round(secs, 1), **learned}
     start = datetime.fromtimestamp(float(last["t"]) + 60.0, timezone.utc)
@@ -237,7 +273,7 @@ async def _day(work: Path, hours: float, speed: float, family: str) -> dict:
     sim_cfg = sim_cfg.with_sections(
         fouling={"R_th_f_initial_K_per_kW": float(last["R_th_f_K_per_kW"]),
                  "CF_dp_f_initial": float(last["CF_dp_f"])},
-        control={"p_m_sp_bar_g": LOCAL_SP, "p_m_sp_schedule": []},
+        control={"p_m_sp_bar_g": local_sp, "p_m_sp_schedule": []},
         remote_setpoint={"enabled": True, "bounds_bar_g": list(PLC_BOUNDS),
                          "heartbeat_timeout_s": HEARTBEAT_TIMEOUT_S})
     sim = PlantSimulator(sim_cfg, port=0, speed=speed)
@@ -291,7 +327,7 @@ async def _day(work: Path, hours: float, speed: float, family: str) -> dict:
             proc.kill()
             proc.wait(10)
         await sim.stop()
-    out["cop"] = await asyncio.to_thread(judge_cop, truth, sim_cfg, t_start, t_end, LOCAL_SP)
+    out["cop"] = await asyncio.to_thread(judge_cop, truth, sim_cfg, t_start, t_end, local_sp)
     from edge.store import HistoryStore
     with HistoryStore(work / "history.sqlite", 400) as store:
         events = store.closed_loop_events()
@@ -312,18 +348,21 @@ async def _day(work: Path, hours: float, speed: float, family: str) -> dict:
 
 
 def bench_closed_loop(hours: float = HOURS, speed: float = SPEED, family: str = FAMILY,
-                      work: Path | None = None) -> dict:
-    """``hp-edge bench --only closed_loop``: the figures as a dict (JSON-ready)."""
+                      work: Path | None = None, local_sp: float = LOCAL_SP) -> dict:
+    """``hp-edge bench --only closed_loop``: the figures as a dict (JSON-ready). ``work``: keep
+    the run's files there (gateway.yaml, its log, history, state; the pre-learned state is
+    reused by the next run in the same directory)."""
     if work is not None:
         work.mkdir(parents=True, exist_ok=True)
-        return asyncio.run(_day(work, hours, speed, family))
+        return asyncio.run(_day(work, hours, speed, family, local_sp))
     with tempfile.TemporaryDirectory(prefix="hp-edge-bench-closed-loop-") as tmp:
-        return asyncio.run(_day(Path(tmp), hours, speed, family))
+        return asyncio.run(_day(Path(tmp), hours, speed, family, local_sp))
 
 
-if __name__ == "__main__":   # python -m edge.bench_closed_loop [HOURS [SPEED [WORKDIR]]]
+if __name__ == "__main__":   # python -m edge.bench_closed_loop [HOURS [SPEED [WORKDIR [LOCAL_SP]]]]
     import json
     a = sys.argv[1:]
     res = bench_closed_loop(float(a[0]) if a else HOURS, float(a[1]) if len(a) > 1 else SPEED,
-                            work=Path(a[2]) if len(a) > 2 else None)
+                            work=Path(a[2]) if len(a) > 2 else None,
+                            local_sp=float(a[3]) if len(a) > 3 else LOCAL_SP)
     print(json.dumps(res, indent=2, default=float))

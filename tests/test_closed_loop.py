@@ -559,3 +559,36 @@ def test_audit_rows_wait_in_memory_while_the_history_is_not_writable(tmp_path):
         assert store.pending == 1
     finally:
         store.close()
+
+
+# --------------------------------------------------------------------------- the bench's judge
+
+def test_the_benchs_judge_finds_every_kind_of_violation():
+    """edge.bench_closed_loop.judge_writes on a made-up simulator log: one write outside the
+    bounds, one above the step limit, one followed by a block with a blocking bit, one refused."""
+    from types import SimpleNamespace as NS
+
+    from edge.bench_closed_loop import LOOP as BENCH_LOOP, judge_writes
+
+    adv = BASE.advisory
+    bits = dict(adv.status_bits)
+    stale = 1 << {n: b for b, n in adv.status_bits}["data_stale"]
+    off = 1 << {n: b for b, n in adv.status_bits}["storage_fault"]     # not a blocking bit
+
+    def block(status):
+        return NS(address=adv.start, count=adv.size, values=(1, status), function_code=16)
+
+    def sp():
+        return NS(address=110, count=1, values=(0,), function_code=16)
+
+    sim = NS(setpoint_log=[
+        {"old": 16.0, "new": 15.5, "accepted": True, "plant_t": 0.0},
+        {"old": 15.5, "new": 14.8, "accepted": True, "plant_t": 300.0},     # step 0.7
+        {"old": 10.2, "new": 9.7, "accepted": True, "plant_t": 600.0},      # below 10
+        {"old": 9.7, "new": 10.2, "accepted": False, "plant_t": 900.0}],
+        write_log=[block(0), sp(), block(off), sp(), block(0), sp(), block(stale), sp(), block(0),
+                   NS(address=111, count=1, values=(1,), function_code=6)])
+    got = judge_writes(sim, adv.start, adv.size, 110, bits, BENCH_LOOP)
+    assert (got["outside_bounds"], got["above_step_limit"], got["while_blocking_bit_set"],
+            got["refused"], got["writes_elsewhere"], got["accepted"]) == (1, 1, 1, 1, 1, 3)
+    assert got["largest_step_bar"] == 0.7 and got["shortest_interval_s"] == 300.0

@@ -592,3 +592,23 @@ def test_the_benchs_judge_finds_every_kind_of_violation():
     assert (got["outside_bounds"], got["above_step_limit"], got["while_blocking_bit_set"],
             got["refused"], got["writes_elsewhere"], got["accepted"]) == (1, 1, 1, 1, 1, 3)
     assert got["largest_step_bar"] == 0.7 and got["shortest_interval_s"] == 300.0
+
+
+def test_the_benchs_cop_judge_on_a_plant_that_held_its_set_point():
+    """edge.bench_closed_loop.judge_cop: a plant that ran at 16 bar(g) all along realized exactly
+    the 16-bar baseline; the optimum is at least as good; the gap is the baseline's."""
+    from edge.bench_closed_loop import judge_cop
+    from simulator.config import load_simulator_config
+    from simulator.export import MinuteStepper
+
+    cfg = load_simulator_config()
+    st_ = MinuteStepper(cfg)
+    rows = [st_.step()[1] for _ in range(120)]
+    t0 = rows[0]["t"]
+    got = judge_cop(rows, cfg, t0, t0 + 7200, 16.0)
+    assert got["hours"] == 2 and len(got["hourly"]) == 2
+    assert got["COP_realized"] == pytest.approx(got["COP_at_baseline"], rel=1e-9)
+    assert got["gain_over_baseline_pct"] == pytest.approx(0.0, abs=1e-6)
+    assert got["COP_optimum"] >= got["COP_realized"] - 1e-9
+    assert got["gap_to_optimum_pct"] == pytest.approx(got["baseline_gap_to_optimum_pct"], abs=1e-6)
+    assert [h["set_point_bar_g"] for h in got["hourly"]] == [16.0, 16.0]

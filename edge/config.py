@@ -172,6 +172,8 @@ class GatewayConfig:
     reserved: tuple[Reserved, ...] = ()
     # optional section (issue 14): edge.northbound.config.NorthboundConfig, None when absent
     northbound: Any = None
+    # optional section (issue 13): edge.closed_loop.ClosedLoopConfig, None when absent (= off)
+    closed_loop: Any = None
 
     def tag(self, name: str) -> TagConfig:
         for t in self.tags:
@@ -245,6 +247,12 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
     if "northbound" in data:     # issue 14: parsed by its own module, problems land here
         from edge.northbound.config import parse_northbound
         northbound = parse_northbound(top.child("section 'northbound'", data["northbound"]), base)
+    closed_loop = None
+    if "closed_loop" in data:    # issue 13: the opt-in closed loop, its own module
+        from edge.closed_loop import parse_closed_loop
+        closed_loop = parse_closed_loop(top.child("section 'closed_loop'", data["closed_loop"]),
+                                        tags, _display(tags_path) if tags_path else "tags_file",
+                                        scan, names)
     if p.lines:
         raise ConfigError(p.lines)
     return GatewayConfig(
@@ -252,7 +260,7 @@ def load_config(path: str | Path = DEFAULT_CONFIG, *, load_plant: bool = True) -
         plant_file=plant_path, scan_interval_s=scan, aggregate_s=aggregate,
         calibration_interval_s=calib_every, calibration_window_h=window_h,
         min_window_samples=min_samples, life_counter_tag=life_counter, plant=plant,
-        reserved=reserved, northbound=northbound, **cfg_kwargs,
+        reserved=reserved, northbound=northbound, closed_loop=closed_loop, **cfg_kwargs,
     )
 
 
@@ -295,7 +303,8 @@ _TOP_REQUIRED = (
     "life_counter_tag", "state_dir", "history_db", "history_retention_days", "reserved",
     "advisory",
 )
-_TOP_KEYS = _TOP_REQUIRED + ("northbound",)   # optional (issue 14, edge/northbound/config.py)
+_TOP_KEYS = _TOP_REQUIRED + ("northbound",    # optional (issue 14, edge/northbound/config.py)
+                              "closed_loop")   # optional (issue 13, edge/closed_loop.py)
 _PLC_KEYS = ("host", "port", "device_id", "timeout_s", "reconnect_min_s", "reconnect_max_s",
              "max_read_gap", "close_after_poll", "pause_between_requests_s")
 

@@ -10,7 +10,10 @@ One scan cycle, every ``scan_interval_s`` on the monotonic clock:
    it never blocks the event loop, and the cycle goes on while it runs;
 4. when a calibration has finished, take its advice (or keep the last good advice, with its age,
    and set the failure bit);
-5. write the whole advisory block - heartbeat, status word, values - in ONE FC16 request.
+5. the opt-in closed loop (edge.closed_loop, SPEC 7.4): with this scan's values, status bits and
+   advice, write at most one set-point step (off as shipped; then it only reports its state);
+6. write the whole advisory block - heartbeat, status word, values, closed-loop state - in ONE FC16
+   request.
 
 The sample clock is the wall clock, or with ``time_source="plc"`` the PLC's clock register (plant
 time: the accelerated simulator, or a PLC whose clock the plant's history should follow). Every
@@ -62,6 +65,7 @@ from typing import Any, Protocol
 
 from edge.advisory import encode_advisory
 from edge.aggregate import MIN_POWER_KW, Aggregator, Freshness, Sample, plant_running
+from edge.closed_loop import ClosedLoop
 from edge.codec import raw_limits
 from edge.config import GatewayConfig
 from edge.plc import PlcClient, PlcError, PlcExceptionReply, ReadResult
@@ -77,7 +81,9 @@ STATUS_NAMES = ("data_stale", "heat_pump_off", "cip_detected", "calibration_fail
                 "model_infeasible", "comm_fault", "advice_stale", "advice_low_confidence",
                 "storage_fault", "clock_fault", "sensor_fault")
 # advisory fields the loop fills itself; an advisor provides the others
-LOOP_FIELDS = ("heartbeat", "status", "last_update", "advice_age_s")
+LOOP_FIELDS = ("heartbeat", "status", "last_update", "advice_age_s", "closed_loop_state",
+               "closed_loop_reason", "closed_loop_sp_written", "closed_loop_target",
+               "closed_loop_last_write", "closed_loop_writes")
 
 
 @dataclass(frozen=True)
@@ -183,6 +189,7 @@ class Snapshot:
     clock_rejected: int = 0              # scans whose sample clock was rejected
     clock_jumps: int = 0                 # lasting clock jumps accepted as corrections
     storage_fault: str | None = None     # the advisor's, as of the last cycle
+    closed_loop: tuple[str, str] = ("off", "disabled_in_config")   # (state, reason) of edge.closed_loop
 
 
 @dataclass(frozen=True)
@@ -224,6 +231,8 @@ class Gateway:
     required_tags : tags whose flat line or staleness sets sensor_fault (default: every
         aggregated tag; the service passes the model's required inputs)
     observers : told after every cycle (``Observer``: the health endpoint, the MQTT publisher)
+    audit : called (in a worker thread) with one dict per closed-loop write or change of state
+        (edge.service passes the history store's ``add_closed_loop_event``)
     """
 
     def __init__(self, cfg: GatewayConfig, advisor: Advisor, *, plc: PlcClient | None = None,
@@ -232,7 +241,8 @@ class Gateway:
                  shutdown_timeout_s: float = 10.0, notifier: Notifier | None = None,
                  clock: ClockPolicy | None = None, host_clock: Callable[[], float] = time.time,
                  required_tags: Iterable[str] | None = None,
-                 observers: Iterable[Observer] = ()) -> None:
+                 observers: Iterable[Observer] = (),
+                 audit: Callable[[dict], Any] | None = None) -> None:
         if time_source not in TIME_SOURCES:
             raise ValueError(f"time_source must be one of {', '.join(TIME_SOURCES)}")
         tag_names = {t.name for t in cfg.tags}
@@ -248,8 +258,13 @@ class Gateway:
         configured = {name for _, name in cfg.advisory.status_bits}
         self._bits = tuple(n for n in STATUS_NAMES if n in configured)
         self._fields = {f.name for f in cfg.advisory.fields}
+        # the operator's closed-loop enable is a switch, not a measurement: not aggregated and
+        # never data_stale (the closed loop judges it itself); the PLC clock is not aggregated
+        loop_cfg = getattr(cfg, "closed_loop", None)
+        enable = loop_cfg.enable_tag if loop_cfg is not None else None
         self.aggregator = Aggregator(
-            cfg.tags, cfg.aggregate_s, life_counter=cfg.life_counter_tag,
+            tuple(t for t in cfg.tags if t.name != enable), cfg.aggregate_s,
+            life_counter=cfg.life_counter_tag,
             exclude=(clock_tag,) if clock_tag in tag_names else (), t_start=monotonic())
         self.clock = SampleClock(clock, rate=1.0 if time_source == "wall" else None)
         self._host = host_clock
@@ -282,6 +297,8 @@ class Gateway:
         self._observer_log = RepeatLog(log, "observer", level=logging.ERROR, monotonic=monotonic)
         self._calibration_started = math.nan          # monotonic start of the running one
         self._calibration_s: float | None = None      # duration of the last finished one
+        self._all_bits: set[str] = set()              # this scan's bits, configured or not
+        self.closed_loop = ClosedLoop.from_config(cfg, self.plc, audit)
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -336,6 +353,7 @@ class Gateway:
                 log.warning("calibration still running after %g s: abandoned (its state is "
                             "written atomically, nothing half-written remains)",
                             self.shutdown_timeout_s)
+        await self.closed_loop.shutdown()
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
         await self.plc.close()
@@ -420,6 +438,7 @@ class Gateway:
         self._maybe_start_calibration()
         fresh = self.aggregator.freshness(t_mono)
         bits = self._status_bits(result, fresh)
+        await self._closed_loop(result, t_sample)
         await self._write(bits, t_sample)
         snap = self.snapshot
         snap.cycles += 1
@@ -433,6 +452,19 @@ class Gateway:
                                     t_end - t_begin, t_end))
         self.changed.set()
         self.changed = asyncio.Event()
+
+    async def _closed_loop(self, result: ReadResult, t_sample: float | None) -> None:
+        """One step of the opt-in closed loop; an unexpected error in it sheds it, never the scan."""
+        adv = self._advice
+        try:
+            st = await self.closed_loop.step(result, self._all_bits,
+                                             adv.values if adv is not None else None, t_sample)
+        except Exception as exc:  # noqa: BLE001 - a bug here must stop the writes, not the advisory
+            self.snapshot.errors += 1
+            log.exception("closed loop step failed: %s", exc)
+            await self.closed_loop.fault(exc)
+            st = self.closed_loop.status
+        self.snapshot.closed_loop = (st.state.name.lower(), st.reason.name.lower())
 
     def _notify(self, event: CycleEvent) -> None:
         failed = None
@@ -606,6 +638,7 @@ class Gateway:
         if (plant_running(good) and result.comm_error is None and not fresh.frozen
                 and set(self.required) & (set(fresh.stale) | set(fresh.flat))):
             bits.add("sensor_fault")
+        self._all_bits = bits       # the closed loop judges every bit, configured in the block or not
         return {b for b in bits if b in self._bits}
 
     def _advice_age(self) -> float | None:
@@ -631,6 +664,7 @@ class Gateway:
                 top = int(raw_limits(self.cfg.advisory.field("advice_age_s").type)[1])
                 age = self._advice_age()
                 values["advice_age_s"] = top if age is None else int(min(age, top))
+        values.update((k, v) for k, v in self.closed_loop.values().items() if k in self._fields)
         return values
 
     async def _write(self, bits: set[str], t_sample: float | None) -> None:

@@ -18,7 +18,11 @@ failing; this is logged once per group.
 
 Writes raise, and go only to the advisory block: ``write_registers`` refuses any address outside
 it, or overlapping a register the PLC owns (gateway.yaml ``reserved``, any tag), before a byte is
-sent (SPEC 7.3) - so the guard holds even when tags.yaml is incomplete.
+sent (SPEC 7.3) - so the guard holds even when tags.yaml is incomplete. The one exception is the
+opt-in closed loop (SPEC 7.4, edge/closed_loop.py): when gateway.yaml enables it, the client is
+built with that set-point tag, and ``write_setpoint`` writes exactly that tag's registers - it
+takes no address, builds the one FC16 request itself and refuses any other length; without the
+closed loop it refuses to write at all.
 
 Logging: the first failure of a run is a WARNING; while it goes on, one summary line ("still
 failing: N failures in M s") at most every ``SUMMARY_INTERVAL_S``; the recovery once. A garbled
@@ -86,6 +90,11 @@ class PlcExceptionReply(PlcError):
 
 class WriteOutsideAdvisoryBlock(PlcError):
     """A write to registers outside the advisory block was refused; nothing was sent."""
+
+
+class SetpointWriteRefused(WriteOutsideAdvisoryBlock):
+    """A set-point write was refused before anything was sent (no closed loop configured, or
+    not exactly the set-point tag's registers)."""
 
 
 @dataclass(frozen=True)
@@ -211,11 +220,17 @@ class PlcClient:
         clock: Callable[[], float] = time.monotonic,
         reserved: Sequence[Reserved] = (),
         summary_interval_s: float = SUMMARY_INTERVAL_S,
+        setpoint: TagConfig | None = None,
     ) -> None:
         if cycle_budget_s <= 0:
             raise ValueError(f"cycle_budget_s must be > 0, got {cycle_budget_s}")
         self.plc, self.tags, self.advisory = plc, tuple(tags), advisory
         self.reserved = tuple(reserved)
+        if setpoint is not None and (setpoint.register != "holding" or setpoint.bit is not None
+                                     or advisory.contains(setpoint.address, setpoint.count)):
+            raise ValueError(f"set-point tag {setpoint.name!r} must be a whole holding register "
+                             "value outside the advisory block")
+        self.setpoint = setpoint    # the closed loop's one extra writable tag (None: no closed loop)
         self.cycle_budget_s = cycle_budget_s
         self._clock = clock
         gap = plc.max_read_gap if max_gap is None else max_gap
@@ -236,8 +251,10 @@ class PlcClient:
     def from_config(cls, cfg: GatewayConfig, **overrides) -> PlcClient:
         """Client for ``cfg``; ``overrides`` replace PlcConfig fields (host, port, device_id...)."""
         plc = replace(cfg.plc, **overrides) if overrides else cfg.plc
+        loop = getattr(cfg, "closed_loop", None)
+        setpoint = cfg.tag(loop.setpoint_tag) if loop is not None and loop.enabled else None
         return cls(plc, cfg.tags, cfg.advisory, reserved=cfg.reserved,
-                   cycle_budget_s=CYCLE_BUDGET_FRACTION * cfg.scan_interval_s)
+                   cycle_budget_s=CYCLE_BUDGET_FRACTION * cfg.scan_interval_s, setpoint=setpoint)
 
     # ------------------------------------------------------------------ connection handling
 
@@ -573,6 +590,50 @@ class PlcClient:
         finally:
             if self.plc.close_after_poll:
                 self._drop()
+
+
+    # ------------------------------------------------------------ the closed loop's set point
+
+    async def write_setpoint(self, words: Sequence[int], timeout: float | None = None) -> None:
+        """Write the closed loop's set-point tag: ONE FC16 request to exactly that tag's registers
+        (address, count and device from the tag map; the caller gives only the words). Refused
+        before anything is sent when gateway.yaml does not enable the closed loop, or when
+        ``words`` is not exactly the tag's register count. The reply must echo address and count."""
+        tag = self.setpoint
+        words = list(words)
+        if tag is None:
+            raise SetpointWriteRefused(
+                "refusing to write a set point: the closed loop is not enabled in gateway.yaml "
+                "(closed_loop.enabled); the gateway writes only the advisory block")
+        what = f"set-point tag '{tag.name}' (holding {tag.address}..{tag.end - 1})"
+        if len(words) != tag.count:
+            raise SetpointWriteRefused(f"refusing to write {len(words)} register(s) to {what}: "
+                                       f"it has exactly {tag.count}")
+        for w in words:
+            if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w <= 0xFFFF:
+                raise ValueError(f"register word {w!r} is not an integer 0..65535")
+        if tag.register != "holding" or self.advisory.contains(tag.address, tag.count):
+            raise SetpointWriteRefused(f"refusing to write {what}: not a holding register "
+                                       "outside the advisory block")
+        dev = self.plc.device_id if tag.device_id is None else tag.device_id
+        address = tag.address
+        reply = await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
+                                    timeout or self.plc.timeout_s, 16, address, len(words))
+        echo = (getattr(reply, "address", None), getattr(reply, "count", None))
+        if echo != (address, len(words)):
+            detail = (f"function 16 at {address}..{address + len(words) - 1}: the reply confirms "
+                      f"{echo[1]} registers at {echo[0]}")
+            self._lose("protocol error", detail)
+            raise PlcCommError("protocol error", detail)
+        self.failures.ok()
+
+    async def read_setpoint(self, timeout: float | None = None) -> list[int]:
+        """The set-point tag's registers as the PLC holds them now (one FC3 request)."""
+        tag = self.setpoint
+        if tag is None:
+            raise SetpointWriteRefused("no set-point tag: the closed loop is not enabled")
+        dev = self.plc.device_id if tag.device_id is None else tag.device_id
+        return await self.read_registers("holding", tag.address, tag.count, timeout, dev)
 
 
 def _fc(code, mask: int = 0xFF) -> str:

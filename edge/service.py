@@ -495,7 +495,8 @@ class GatewayService:
                                    install_signals=install_signals,
                                    shutdown_timeout_s=shutdown_timeout_s, notifier=SdNotify(),
                                    required_tags=measured.REQUIRED, clock=clock,
-                                   observers=[o for o in (self.health, self.publisher) if o])
+                                   observers=[o for o in (self.health, self.publisher) if o],
+                                   audit=self.store.add_closed_loop_event)
         except BaseException:
             self.store.close()
             raise

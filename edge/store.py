@@ -1,5 +1,7 @@
-"""Local history in SQLite: one-minute samples (tags, derived columns, usable/reason) and the
-advisory outputs of every calibration cycle.
+"""Local history in SQLite: one-minute samples (tags, derived columns, usable/reason), the
+advisory outputs of every calibration cycle, and the closed loop's audit trail (table
+``closed_loop``: every set-point write - time, old, new, target, words, outcome - and every change
+of the loop's state, in order; edge.closed_loop).
 
 Durability: WAL journal with ``synchronous=FULL``; every write is one transaction, so a crash
 (kill -9, power loss on a sane disk) at any moment loses no committed row - SQLite either has the
@@ -57,7 +59,10 @@ SAMPLE_TEXT = ("reason", "quality", "bad")
 SAMPLE_INT = ("usable", "scans", "good_scans")
 ADVICE_TEXT = ("status_bits", "detail", "message")
 ADVICE_INT = ("ok", "calibration_ok", "optimization_ok", "low_confidence")
-TABLES = {"samples": (SAMPLE_TEXT, SAMPLE_INT), "advice": (ADVICE_TEXT, ADVICE_INT)}
+AUDIT_TEXT = ("event", "state", "reason", "words", "outcome", "message")
+TABLES = {"samples": (SAMPLE_TEXT, SAMPLE_INT), "advice": (ADVICE_TEXT, ADVICE_INT),
+          "closed_loop": (AUDIT_TEXT, ())}
+APPEND_ONLY = ("closed_loop",)   # rows keyed by an id, not by ts (several may share a time)
 BUSY_TIMEOUT_S = 2.0        # SQLite's own wait for a lock, per statement
 OPEN_WAIT_S = 10.0          # open(): retry a locked database this long before running without it
 RETRY_MIN_S, RETRY_MAX_S = 1.0, 60.0     # back-off between write retries while faulty
@@ -222,6 +227,8 @@ class HistoryStore:
             db.execute("CREATE TABLE IF NOT EXISTS advice (ts INTEGER PRIMARY KEY, wall REAL)")
             db.execute("CREATE TABLE IF NOT EXISTS conflicts (id INTEGER PRIMARY KEY, "
                        "tbl TEXT, ts INTEGER, wall REAL, row TEXT)")
+            db.execute("CREATE TABLE IF NOT EXISTS closed_loop (id INTEGER PRIMARY KEY "
+                       "AUTOINCREMENT, ts REAL, wall REAL)")
             self._columns = {t: {r[1] for r in db.execute(f"PRAGMA table_info({t})")}
                              for t in TABLES}
         except sqlite3.Error:
@@ -298,6 +305,11 @@ class HistoryStore:
             cols = list(row)
             names = ",".join('"' + c + '"' for c in cols)
             marks = ",".join("?" * len(cols))
+            if table in APPEND_ONLY:
+                db.execute(f"INSERT INTO {table} ({names}) VALUES ({marks})",
+                           [_sql_value(row[c]) for c in cols])
+                written += 1
+                continue
             cur = db.execute(f"INSERT INTO {table} ({names}) VALUES ({marks}) "
                              "ON CONFLICT(ts) DO NOTHING", [_sql_value(row[c]) for c in cols])
             if cur.rowcount == 1:
@@ -449,6 +461,28 @@ class HistoryStore:
         self._queue("advice", [row])
         return self.flush()
 
+    def add_closed_loop_event(self, record: Mapping[str, Any]) -> int:
+        """One row of the closed loop's audit trail (edge.closed_loop): ``ts`` [epoch s, sample
+        clock], ``event`` ('write' | 'state') and its columns (old_bar_g, new_bar_g, target_bar_g,
+        words, outcome, state, reason, message). Kept in order of arrival; waits in memory like
+        every row while the database is not writable. Returns the rows written now."""
+        row = {"ts": float(record["ts"]), "wall": time.time()}
+        row.update((k, v) for k, v in record.items() if k != "ts")
+        self._check_names(row)
+        self._queue("closed_loop", [row])
+        return self.flush()
+
+    def closed_loop_events(self, since: float | None = None) -> list[dict]:
+        """The audit trail (oldest first), rows still waiting in memory included."""
+        with self._lock:
+            got = self._read("SELECT * FROM closed_loop" + (" WHERE ts >= ?" if since is not None
+                                                              else "") + " ORDER BY id",
+                             (since,) if since is not None else ())
+            out = [dict(zip(got[0], r)) for r in got[1]] if got else []
+            out += [{k: _sql_value(v) for k, v in r.items()} for r in self._pending["closed_loop"]
+                    if since is None or r["ts"] >= since]
+        return out
+
     def _maybe_prune(self, newest: float) -> None:
         newest = min(newest, time.time() + PRUNE_MAX_AHEAD_S)
         if self._last_prune is not None and newest - self._last_prune < self.prune_every_s \
@@ -468,6 +502,7 @@ class HistoryStore:
                 n = db.execute("DELETE FROM samples WHERE ts < ?", (cutoff,)).rowcount
                 n += db.execute("DELETE FROM advice WHERE ts < ?", (cutoff,)).rowcount
                 n += db.execute("DELETE FROM conflicts WHERE ts < ?", (cutoff,)).rowcount
+                n += db.execute("DELETE FROM closed_loop WHERE ts < ?", (cutoff,)).rowcount
                 count = db.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
                 if count > self.max_rows:
                     n += db.execute(
@@ -526,7 +561,7 @@ class HistoryStore:
 
     def count(self, table: str = "samples") -> int:
         """Rows stored in the database (not those waiting in memory)."""
-        if table not in ("samples", "advice", "conflicts"):
+        if table not in ("samples", "advice", "conflicts", "closed_loop"):
             raise ValueError(f"unknown table {table!r}")
         with self._lock:
             return int(self.db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])

@@ -116,13 +116,19 @@ class AdvisoryBlock:
     register: str
     start: int
     size: int
+    heartbeat_offset: int | None = None   # the heartbeat word the PLC's watchdog watches
+
+    @property
+    def heartbeat_address(self) -> int | None:
+        return None if self.heartbeat_offset is None else self.start + self.heartbeat_offset
 
     def contains(self, address: int, count: int) -> bool:
         return self.start <= address and address + count <= self.start + self.size
 
 
 def read_advisory(path: str | Path) -> AdvisoryBlock:
-    """The writable advisory block of gateway.yaml (only register, start, size are used here)."""
+    """The writable advisory block of gateway.yaml (only register, start, size and the heartbeat
+    field's offset are used here)."""
     path = Path(path)
     doc = load_yaml_file(path)
     adv = doc.get("advisory") if isinstance(doc, dict) else None
@@ -136,7 +142,13 @@ def read_advisory(path: str | Path) -> AdvisoryBlock:
         raise SimConfigError(f"{path}: advisory: key 'register' must be holding (it is written)")
     if not 1 <= adv["size"] <= 123 or adv["start"] + adv["size"] > 65536:
         raise SimConfigError(f"{path}: advisory: key 'size' must be 1..123 inside the address space")
-    return AdvisoryBlock("holding", adv["start"], adv["size"])
+    hb = (adv.get("fields") or {}).get("heartbeat") if isinstance(adv.get("fields"), dict) else None
+    offset = hb.get("offset") if isinstance(hb, dict) else None
+    if offset is not None and (not isinstance(offset, int) or isinstance(offset, bool)
+                               or not 0 <= offset < adv["size"]):
+        raise SimConfigError(f"{path}: advisory: field 'heartbeat': key 'offset' must be an integer "
+                             f"inside the block (0..{adv['size'] - 1})")
+    return AdvisoryBlock("holding", adv["start"], adv["size"], offset)
 
 
 # ---------------------------------------------------------------------------- simulator.yaml --
@@ -213,6 +225,17 @@ class ControlCfg:
     p_m_sp_limits_bar_g: tuple = (4.0, 35.0)
     standstill_T_C: float = 20.0
     p_m_sp_schedule: tuple = ()        # ((from_day, bar_g), ...): the PLC's own set-point steps
+
+
+@dataclass(frozen=True)
+class RemoteSetpointCfg:
+    """The PLC's program for a remote (supervisory) set point (simulator/remote.py,
+    docs/closed_loop.md). enabled False: a PLC without it, where any client write to the set-point
+    register is taken (clamped into control.p_m_sp_limits_bar_g)."""
+    enabled: bool = False
+    enable_tag: str = "closed_loop_enable"   # holding register of tags.yaml the operator sets (0/1)
+    bounds_bar_g: tuple = (8.0, 22.0)        # a remote set point outside is refused (exception 3)
+    heartbeat_timeout_s: float = 60.0        # wall seconds without a heartbeat change: fallback
 
 
 T_C_LOCATIONS = ("condenser_outlet", "subcooler_outlet")
@@ -292,6 +315,7 @@ class SimulatorConfig:
     profiles: ProfileCfg = ProfileCfg()
     lags_s: LagCfg = LagCfg()
     sensors: SensorsCfg = SensorsCfg()
+    remote_setpoint: RemoteSetpointCfg = RemoteSetpointCfg()
     noise: dict = field(default_factory=dict)       # tag -> sigma [engineering unit]
     faults: tuple = ()                              # FaultSpec
     compressor_families: dict = field(default_factory=dict)   # name -> {"LS": {...}, "HS": {...}}
@@ -333,7 +357,8 @@ class SimulatorConfig:
 
 
 _SECTIONS = {"time": TimeCfg, "flow_dependence": FlowCfg, "fouling": FoulingCfg, "cip": CipCfg,
-             "control": ControlCfg, "profiles": ProfileCfg, "lags_s": LagCfg, "sensors": SensorsCfg}
+             "control": ControlCfg, "profiles": ProfileCfg, "lags_s": LagCfg, "sensors": SensorsCfg,
+             "remote_setpoint": RemoteSetpointCfg}
 FAMILY_KEYS = ("eta_is_max", "eta_is_floor", "pi_opt", "w_ln_pi", "n_opt", "w_n",
                "vol_a", "vol_b", "vol_k", "vol_c")     # simulator.compressors.STAGE_KEYS
 
@@ -428,6 +453,21 @@ def _section(key: str, d, where: str):
         sched = d.pop("p_m_sp_schedule", ()) or ()
         cfg = _dataclass_from(ControlCfg, d, where)
         return dataclasses.replace(cfg, p_m_sp_schedule=_schedule(sched, cfg, where))
+    if key == "remote_setpoint" and isinstance(d, dict):
+        d = dict(d)
+        enabled = d.pop("enabled", False)
+        tag = d.pop("enable_tag", RemoteSetpointCfg.enable_tag)
+        cfg = _dataclass_from(RemoteSetpointCfg, d, where)
+        if not isinstance(enabled, bool):
+            raise SimConfigError(f"{where}: key 'enabled' must be true or false, got {fmt_value(enabled)}")
+        if not isinstance(tag, str) or not tag:
+            raise SimConfigError(f"{where}: key 'enable_tag' must be a tag name, got {fmt_value(tag)}")
+        lo, hi = cfg.bounds_bar_g
+        if not lo < hi:
+            raise SimConfigError(f"{where}: key 'bounds_bar_g' must be [low, high] with low < high")
+        if not cfg.heartbeat_timeout_s > 0:
+            raise SimConfigError(f"{where}: key 'heartbeat_timeout_s' must be > 0")
+        return dataclasses.replace(cfg, enabled=enabled, enable_tag=tag)
     if key == "sensors" and isinstance(d, dict):
         cfg = _dataclass_from(SensorsCfg, d, where)
         if cfg.T_c not in T_C_LOCATIONS:
@@ -542,6 +582,10 @@ def _check(cfg: SimulatorConfig, where: str) -> None:
     lo, hi = cfg.control.p_m_sp_limits_bar_g
     if not lo < hi:
         raise SimConfigError(f"{where}: control: key 'p_m_sp_limits_bar_g' must be [low, high]")
+    blo, bhi = cfg.remote_setpoint.bounds_bar_g
+    if not lo <= blo < bhi <= hi:
+        raise SimConfigError(f"{where}: remote_setpoint: key 'bounds_bar_g' [{blo:g}, {bhi:g}] must lie "
+                             f"within control.p_m_sp_limits_bar_g [{lo:g}, {hi:g}]")
     for name in ("water_side_share_eva", "water_side_share_con"):
         if not 0.0 <= getattr(cfg.flow_dependence, name) < 1.0:
             raise SimConfigError(f"{where}: flow_dependence: key '{name}' must be within 0..1")

@@ -108,7 +108,10 @@ class MinuteStepper:
                  plant: Plant | None = None):
         self.cfg = cfg = cfg or load_simulator_config()
         self.tags = read_tags(cfg.tags_file)
-        self.columns = [n for n in self.tags if n not in SYSTEM_TAGS]
+        # the history's columns: the plant's values (not the PLC's system registers, and not the
+        # operator's closed-loop enable, which is no measurement)
+        skip = set(SYSTEM_TAGS) | {cfg.remote_setpoint.enable_tag}
+        self.columns = [n for n in self.tags if n not in skip]
         self.plant = plant or Plant(cfg)
         self.plant.record_truth = False
         self.with_truth = with_truth

@@ -14,7 +14,9 @@ What the plant is and the model is not (on purpose; calibration must cope):
 Sensor mapping and the LS controller: simulator/sensors.py (shared with the synthetic histories
 and the truth evaluator). HS speed holds p_m at the set-point register, p_m floats above it at
 1800 rpm (the model's hs_max branch). The set point follows the register, and the PLC's own
-schedule (control.p_m_sp_schedule) when one is configured.
+schedule (control.p_m_sp_schedule) when one is configured: the schedule's steps are the operator's
+local set point (``local_sp_bar_g``), which the plant follows except while the PLC's remote mode
+is active (``remote``, set by the server's remote-set-point program, simulator/remote.py).
 
 Compressors: plant.yaml's polynomials perturbed (truth.compressors.LS/HS), or a family of another
 shape (truth.compressors.family, simulator/compressors.py).
@@ -178,6 +180,8 @@ class Plant:
         self.cip_log: list[dict] = []
         self.running = True
         self.p_m_sp_bar_g = cfg.control.p_m_sp_bar_g
+        self.local_sp_bar_g = cfg.control.p_m_sp_bar_g   # the operator's local set point
+        self.remote = False        # the PLC's remote mode: the schedule moves only the local set point
         self._sp_schedule = [(self.t0 + day * DAY, bar) for day, bar in cfg.control.p_m_sp_schedule]
         self._sp_next = 0
         self.sp_steps = 0                             # schedule steps applied (the server follows)
@@ -235,11 +239,16 @@ class Plant:
 
     def _apply_sp_schedule(self, t: float) -> None:
         """The PLC's own set-point steps that are due at plant time t (each applied once, so a
-        client write in between holds until the next step)."""
+        client write in between holds until the next step). They are the operator's local set
+        point: in remote mode only ``local_sp_bar_g`` moves (the active set point is the remote
+        one), and ``sp_steps`` counts the steps applied to the active set point."""
         while self._sp_next < len(self._sp_schedule) and t >= self._sp_schedule[self._sp_next][0] - 1e-9:
-            self.set_p_m_sp(self._sp_schedule[self._sp_next][1])
+            lo, hi = self.cfg.control.p_m_sp_limits_bar_g
+            self.local_sp_bar_g = min(max(float(self._sp_schedule[self._sp_next][1]), lo), hi)
             self._sp_next += 1
-            self.sp_steps += 1
+            if not self.remote:
+                self.set_p_m_sp(self.local_sp_bar_g)
+                self.sp_steps += 1
 
     def advance_to(self, t: float, max_ticks: int | None = None) -> int:
         """Tick until plant time reaches t (at most max_ticks); returns the ticks done."""

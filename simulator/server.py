@@ -2,7 +2,8 @@
 
 Register memory is a pymodbus ``SimDevice`` (separate coil / discrete / holding / input blocks):
   input 0..       every plant tag of tags.yaml at its address (gaps stay undefined -> exception 2)
-  holding 100..   PLC clock (plant time, uint32 epoch s), life counter; 110 p_m,sp (writable)
+  holding 100..   PLC clock (plant time, uint32 epoch s), life counter; 110 p_m,sp (writable);
+                  111 the operator's closed-loop enable (written by the HMI / ``set_operator_enable``)
   holding 1000..  the advisory block of gateway.yaml (writable, readable)
   holding cip.request_register (only when configured, cip.mode on_request): write non-zero to ask
                   for a CIP; reads 1 while a request is pending or the CIP runs, else 0
@@ -10,7 +11,16 @@ The set-point register follows the plant when the PLC's own schedule (control.p_
 steps it; a client write is applied from the next plant step and holds until the next step.
 A client write anywhere but those registers and the advisory block gets exception 2 (ILLEGAL DATA
 ADDRESS) and changes nothing: undefined addresses by SimDevice itself, defined read-only registers
-by the SimDevice action hook. The plant task pushes values with ``server.async_setValues`` using
+by the SimDevice action hook.
+
+With ``remote_setpoint.enabled`` (config/simulator.yaml, as shipped) the PLC runs the program of
+docs/closed_loop.md for a remote (supervisory) set point (simulator/remote.py): a set-point write
+is taken only in remote mode (else exception 4) and inside its bounds (else exception 3); remote
+mode starts on a rising edge of the enable register while the advisory heartbeat is alive, and
+ends - the set point reverting to the operator's local one (the schedule's) - when the enable
+drops or the heartbeat word has not changed for ``heartbeat_timeout_s`` of wall time (latched
+until the enable drops). The program scans every ``PLC_SCAN_S``; ``plc_events`` lists every change
+of mode, ``setpoint_log`` every set-point write with the value it replaced. The plant task pushes values with ``server.async_setValues`` using
 read function codes (3 / 4), which never carry values on the wire, so the hook can tell the two
 apart. Every write request received is recorded in ``write_log`` (accepted or not).
 
@@ -53,6 +63,7 @@ from .config import SimulatorConfig, load_simulator_config, read_advisory, read_
 from .faults import Faults
 from .plant import Plant
 from .registers import SETPOINT_TAG, encode, encode_run, quantize, register_runs, writable_ranges
+from .remote import RemoteSetpoint
 
 log = logging.getLogger("hp_edge.simulator")
 
@@ -61,6 +72,7 @@ INTERNAL_FC = {"input": 4, "holding": 3}     # plant pushes: read FCs never carr
 UNUSED_BITS_ADDRESS = 65520                  # SimDevice needs coil/discrete blocks; park them here
 MAX_LOOP_HZ = 20.0                           # register pushes per wall second at most
 MAX_PERIOD_S = 0.5                           # ... and at least one push per this (life counter)
+PLC_SCAN_S = 0.02                            # the remote-set-point program's scan (wall seconds)
 
 
 @dataclass(frozen=True)
@@ -151,8 +163,16 @@ class PlantSimulator:
         self.runs = register_runs(self.tags)
         self.cip_register = cfg.cip.request_register if cfg.cip.mode == "on_request" else None
         extra = [] if self.cip_register is None else [(self.cip_register, self.cip_register + 1)]
+        self.enable_spec = self.tags.get(cfg.remote_setpoint.enable_tag)
+        if self.enable_spec is not None and self.enable_spec.register == "holding":
+            extra.append((self.enable_spec.address, self.enable_spec.address + self.enable_spec.count))
         self.writable = writable_ranges(self.tags, self.advisory, extra)
         self._check_layout()
+        # tags the clients own (the plant never pushes them): the set point and the enable
+        self.client_tags = {SETPOINT_TAG, cfg.remote_setpoint.enable_tag}
+        self.program = self._remote_program()
+        self.plc_events: list[dict] = []         # changes of the program's mode
+        self.setpoint_log: list[dict] = []       # every set-point write: old, new, accepted
         self.plant = plant or Plant(cfg)
         self.faults = Faults(self.tags, seed=cfg.seed)
         self.faults.listeners.append(self._on_fault)
@@ -180,6 +200,7 @@ class PlantSimulator:
         self._sp_steps_seen = 0
         self._cip_reg_last = 0
         self._listening: asyncio.Event | None = None
+        self._plc_task: asyncio.Task | None = None
         self._schedule = [(f, False) for f in cfg.faults]
         self._errors: list[BaseException] = []
 
@@ -198,6 +219,23 @@ class PlantSimulator:
             for run in self.runs:
                 if run.register == "holding" and run.start <= reg < run.start + run.count:
                     raise ValueError(f"{where}: holding {reg} is already a tag of {self.cfg.tags_file}")
+
+    def _remote_program(self) -> RemoteSetpoint | None:
+        rs = self.cfg.remote_setpoint
+        if not rs.enabled:
+            return None
+        where = f"{self.cfg.path or '<simulator config>'}: remote_setpoint"
+        sp, en = self.tags.get(SETPOINT_TAG), self.enable_spec
+        if sp is None or sp.register != "holding":
+            raise ValueError(f"{where}: needs the set-point tag '{SETPOINT_TAG}' as a holding register "
+                             f"in {self.cfg.tags_file}")
+        if en is None or en.register != "holding" or en.count != 1:
+            raise ValueError(f"{where}: key 'enable_tag': '{rs.enable_tag}' must be a 16-bit holding "
+                             f"register of {self.cfg.tags_file}")
+        if self.advisory.heartbeat_address is None:
+            raise ValueError(f"{where}: the advisory block of {self.cfg.gateway_file} has no heartbeat "
+                             "field for the watchdog")
+        return RemoteSetpoint(rs.bounds_bar_g, rs.heartbeat_timeout_s)
 
     def _device(self) -> SimDevice:
         holding = [SimData(r.start, count=r.count, values=0, datatype=DataType.REGISTERS)
@@ -220,12 +258,47 @@ class PlantSimulator:
         return any(lo <= address and address + count <= hi for lo, hi in self.writable)
 
     async def _action(self, function_code, start_address, address, count, registers, set_values):
-        """SimDevice hook: reads pass; client writes only into the set point / advisory block."""
+        """SimDevice hook: reads pass; client writes only into the set point / advisory block
+        (and the enable / CIP request registers); the remote-set-point program judges set-point
+        writes and watches the heartbeat."""
         if set_values is None or function_code in (3, 4):
             return None
-        if function_code in (6, 16, 22, 23) and self.is_writable(address, count):
-            return None
-        return ExcCodes.ILLEGAL_ADDRESS
+        if not (function_code in (6, 16, 22, 23) and self.is_writable(address, count)):
+            return ExcCodes.ILLEGAL_ADDRESS
+        sp = self.tags.get(SETPOINT_TAG)
+        if sp is not None and address < sp.address + sp.count and sp.address < address + count:
+            code = self._setpoint_write(function_code, start_address, address, count, registers,
+                                        set_values, sp)
+            if code is not None:
+                return code
+        hb = self.advisory.heartbeat_address
+        if (self.program is not None and hb is not None and address <= hb < address + count
+                and function_code in (6, 16, 23) and not self.faults.frozen):
+            self.program.heartbeat(int(set_values[hb - address]), time.monotonic())
+        return None
+
+    def _setpoint_write(self, fc, start_address, address, count, registers, set_values, sp):
+        """The program's check of a client write to the set point; logs it in ``setpoint_log``."""
+        def value(words):
+            raw = ModbusClientMixin.convert_from_registers(
+                list(words), getattr(ModbusClientMixin.DATATYPE, sp.type.upper()),
+                word_order="little" if sp.byte_order in ("CDAB", "DCBA") else "big")
+            return raw * sp.scale + sp.offset
+        code = None
+        if fc not in (6, 16, 23) or address > sp.address or address + count < sp.address + sp.count:
+            new = math.nan        # a mask write, or part of a two-register value
+            code = ExcCodes.ILLEGAL_VALUE if self.program is not None else None
+        else:
+            new = value(set_values[sp.address - address: sp.address - address + sp.count])
+            if self.program is not None:
+                c = self.program.check_write(new)
+                code = None if c is None else ExcCodes(c)
+        old = value(registers[sp.address - start_address: sp.address - start_address + sp.count])
+        self.setpoint_log.append({"wall": time.time(), "mono": time.monotonic(), "plant_t": self.plant.t,
+                                  "old": old, "new": new, "accepted": code is None,
+                                  "exception": None if code is None else int(code),
+                                  "remote": None if self.program is None else self.program.remote})
+        return code
 
     def _record(self, pdu, response) -> None:
         """Count the request; log writes (response None: dropped unanswered)."""
@@ -269,6 +342,8 @@ class PlantSimulator:
         await self._push()
         self._stopping = False
         self._task = asyncio.create_task(self._run(), name="hp-sim-plant-loop")
+        if self.program is not None:
+            self._plc_task = asyncio.create_task(self._plc_loop(), name="hp-sim-plc-program")
 
     async def _listen(self, port: int) -> None:
         server = _Server(self, self._device(), (self.host, port))
@@ -290,7 +365,7 @@ class PlantSimulator:
 
     async def stop(self) -> None:
         self._stopping = True
-        for task in (self._task, self._restart_task):
+        for task in (self._task, self._restart_task, self._plc_task):
             if task is not None and not task.done():
                 task.cancel()
                 try:
@@ -446,13 +521,66 @@ class PlantSimulator:
                 self._update.notify_all()
             raise
 
+    # ------------------------------------------------------------- remote set point ----
+    async def _plc_loop(self) -> None:
+        """The remote-set-point program, one scan every PLC_SCAN_S of wall time."""
+        while not self._stopping:
+            await self._plc_scan()
+            await asyncio.sleep(PLC_SCAN_S)
+
+    async def _plc_scan(self) -> None:
+        if self._context is None or self.program is None:
+            return
+        dev, en = self.cfg.device_id, self.enable_spec
+        words = await self._context.async_getValues(dev, 3, en.address, 1)
+        enable = not isinstance(words, ExcCodes) and words[0] != 0
+        change = self.program.scan(enable, time.monotonic())
+        if change is None:
+            return
+        sp = self.tags[SETPOINT_TAG]
+        before = self.plant.p_m_sp_bar_g
+        if change.mode == "local":     # revert to the operator's local set point, at once
+            await self._context.async_setValues(dev, 3, sp.address, encode(sp, self.plant.local_sp_bar_g))
+        rec = {"wall": time.time(), "mono": change.t, "plant_t": self.plant.t, "mode": change.mode,
+               "reason": change.reason, "heartbeat_age_s": change.heartbeat_age_s,
+               "p_m_sp_before": before, "local_sp": self.plant.local_sp_bar_g}
+        self.plc_events.append(rec)
+        log.info("PLC: %s mode (%s); heartbeat age %.2f s", change.mode, change.reason,
+                 change.heartbeat_age_s)
+
+    async def set_operator_enable(self, on: bool) -> None:
+        """The operator's switch at the HMI (the enable register), without a Modbus write (so the
+        write log shows the gateway's writes only)."""
+        if self.enable_spec is None or self._context is None:
+            raise RuntimeError("no enable register (remote_setpoint.enable_tag) or not started")
+        await self._context.async_setValues(self.cfg.device_id, 3, self.enable_spec.address, [int(bool(on))])
+
+    def set_local_setpoint(self, bar_g: float) -> None:
+        """The operator's local set point at the panel (clamped into control.p_m_sp_limits_bar_g):
+        the plant takes it in local mode; in remote mode it waits for the fallback. Without the
+        remote-set-point program the set-point register rules and this has no effect."""
+        lo, hi = self.cfg.control.p_m_sp_limits_bar_g
+        self.plant.local_sp_bar_g = min(max(float(bar_g), lo), hi)
+
+    @property
+    def remote_mode(self) -> bool:
+        """The remote-set-point program's mode (False without the program)."""
+        return self.program is not None and self.program.remote
+
     async def _sync_setpoint(self) -> None:
         """Keep the set-point register and the plant's set point together (unless frozen: a
         write then never reaches the PLC). A client write (the register differs from what was
-        last applied) moves the plant; a step of the PLC's own schedule moves the register."""
+        last applied) moves the plant; a step of the PLC's own schedule moves the register.
+        With the remote-set-point program: in local mode the register and the plant hold the
+        operator's local set point; in remote mode the register (the remote set point) moves the plant."""
         spec = self.tags.get(SETPOINT_TAG)
         if spec is None or self.faults.frozen or self._server is None:
             return
+        if self.program is not None:
+            self.plant.remote = self.program.remote
+            if not self.program.remote:
+                await self._hold_local(spec)
+                return
         regs = await self._server.async_getValues(self.cfg.device_id, 3, spec.address, spec.count)
         raw = ModbusClientMixin.convert_from_registers(
             list(regs), getattr(ModbusClientMixin.DATATYPE, spec.type.upper()),
@@ -471,6 +599,18 @@ class PlantSimulator:
             await self._server.async_setValues(self.cfg.device_id, 3, spec.address, encode(spec, sp))
             self._sp_last = float(quantize(spec, np.array([sp]))[0])
             self._sp_steps_seen = self.plant.sp_steps
+
+    async def _hold_local(self, spec) -> None:
+        """Local mode: the register and the plant show the operator's local set point."""
+        local = self.plant.local_sp_bar_g
+        want = encode(spec, local)
+        regs = await self._server.async_getValues(self.cfg.device_id, 3, spec.address, spec.count)
+        if list(regs) != want:
+            await self._server.async_setValues(self.cfg.device_id, 3, spec.address, want)
+        if self.plant.p_m_sp_bar_g != local:
+            self.plant.set_p_m_sp(local)
+        self._sp_last = float(quantize(spec, np.array([local]))[0])
+        self._sp_steps_seen = self.plant.sp_steps
 
     async def _sync_cip_request(self) -> None:
         """The CIP request register (cip.mode on_request): a non-zero client write asks the plant
@@ -542,10 +682,17 @@ class PlantSimulator:
         values = self.current_values()
         dev = self.cfg.device_id
         for run in self.runs:
-            if run.register == "holding" and run.tags[0].name == SETPOINT_TAG:
-                continue      # written by clients; the plant only writes it back when clamping
-            await self._server.async_setValues(dev, INTERNAL_FC[run.register], run.start,
-                                               encode_run(run, values))
+            owned = [t for t in run.tags if t.name in self.client_tags]
+            if not owned:
+                await self._server.async_setValues(dev, INTERNAL_FC[run.register], run.start,
+                                                   encode_run(run, values))
+                continue
+            # the set point and the enable are the clients' (the plant writes the set point back
+            # only when clamping): push the run's other tags one by one
+            for t in run.tags:
+                if t.name not in self.client_tags:
+                    await self._server.async_setValues(dev, INTERNAL_FC[run.register], t.address,
+                                                       encode(t, values.get(t.name, math.nan)))
         if self._sp_last is None:
             spec = self.tags.get(SETPOINT_TAG)
             if spec is not None:

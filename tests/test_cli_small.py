@@ -111,7 +111,7 @@ def test_read_needs_neither_tags_nor_plant_file(tmp_path, monkeypatch, capsys):
     rc, no_host, plain = asyncio.run(asyncio.wait_for(scenario(), 30))
     captured = capsys.readouterr()
     assert (rc, no_host, plain) == (0, 2, 0)
-    assert "1000     heartbeat        7" in captured.out and '"heartbeat": 7' in captured.out
+    assert "1000     heartbeat               7" in captured.out and '"heartbeat": 7' in captured.out
     assert f"the plc section of {gw} is not valid; name the server with --host and --port" \
         in captured.err
 

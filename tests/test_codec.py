@@ -257,11 +257,12 @@ def test_plan_for_default_tags():
     inputs = [t for t in cfg.tags if t.register == "input"]
     holding = [t for t in cfg.tags if t.register == "holding"]
     assert _spans(plan_reads(inputs)) == [(0, 32, [t.name for t in inputs])]
-    assert _spans(plan_reads(holding)) == [(100, 11, ["plc_clock", "life_counter", "p_m_sp"])]
+    assert _spans(plan_reads(holding)) == [
+        (100, 12, ["plc_clock", "life_counter", "p_m_sp", "closed_loop_enable"])]
     assert _spans(plan_reads(holding, max_gap=cfg.plc.max_read_gap)) == [   # as shipped: 0
-        (100, 3, ["plc_clock", "life_counter"]), (110, 1, ["p_m_sp"])]
+        (100, 3, ["plc_clock", "life_counter"]), (110, 2, ["p_m_sp", "closed_loop_enable"])]
     assert _spans(plan_reads(holding, max_gap=6)) == [
-        (100, 3, ["plc_clock", "life_counter"]), (110, 1, ["p_m_sp"])]
+        (100, 3, ["plc_clock", "life_counter"]), (110, 2, ["p_m_sp", "closed_loop_enable"])]
 
 
 def test_plan_respects_125_registers():
@@ -380,7 +381,10 @@ def test_advisory_encode_layout(adv):
     assert words[28:30] == [0x0000, 60]
     assert words[6:8] == [0x7FC0, 0x0000]        # dCOP_pct not given -> NaN
     assert words[30:32] == [0x7FC0, 0x0000]      # dCOP_sd_pct not given -> NaN
-    assert words[36:] == [0] * 28                # not covered by any field
+    assert words[36:48] == [0] * 12              # not covered by any field
+    assert words[48:50] == [0, 0]                # closed_loop_state, _reason not given -> 0
+    assert words[50:54] == [0x7FC0, 0, 0x7FC0, 0]  # closed_loop_sp_written, _target -> NaN
+    assert words[54:] == [0] * 10                # last write, writes; 57..63 not covered
 
 
 def test_advisory_matches_pymodbus_words(adv):

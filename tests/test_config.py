@@ -18,7 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT = REPO / "config" / "gateway.yaml"
 TOP_KEYS = ("plc, tags_file, plant_file, scan_interval_s, aggregate_s, "
             "calibration_interval_s, calibration_window_h, min_window_samples, optimizer, "
-            "life_counter_tag, state_dir, history_db, history_retention_days, reserved, advisory, northbound")
+            "life_counter_tag, state_dir, history_db, history_retention_days, reserved, advisory, northbound, "
+            "closed_loop")
 TAG_KEYS = ("register, address, type, byte_order, scale, offset, unit, range, max_age_s, "
             "sentinel, pressure, device_id, bit, flatline_s")
 TYPES = "int16, uint16, int32, uint32, float32, int64, uint64, float64, bool"
@@ -28,7 +29,7 @@ TYPES = "int16, uint16, int32, uint32, float32, int64, uint64, float64, bool"
 
 def test_default_config_loads():
     cfg = load_config(DEFAULT, load_plant=False)
-    assert len(cfg.tags) == 27
+    assert len(cfg.tags) == 28
     assert [t.name for t in cfg.tags][:3] == ["T_sink_in", "T_sink_out", "T_source_in"]
     p = cfg.tag("p_suc_LS")
     assert (p.register, p.address, p.type, p.byte_order, p.pressure) == ("input", 16, "float32", "CDAB", "gauge")
@@ -37,7 +38,7 @@ def test_default_config_loads():
     assert cfg.plc.host == "127.0.0.1" and cfg.plc.port == 5020 and cfg.plc.device_id == 1
     adv = cfg.advisory
     assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 64, "ABCD")
-    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2))
+    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2)) + [48, 49, 50, 52, 54, 56]
     assert adv.field("last_update").type == "uint32"
     assert dict(adv.status_bits)[5] == "comm_fault"
     assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "auto"
@@ -332,10 +333,11 @@ def test_check_config_prints_the_layout(cfgdir, capsys, no_network):
     out = capsys.readouterr().out
     assert "FC4 input 0..31 (32 registers): T_sink_in, T_sink_out" in out
     assert "FC3 holding 100..102 (3 registers): plc_clock, life_counter" in out
-    assert "FC3 holding 110..110 (1 register): p_m_sp" in out     # max_read_gap 0 as shipped
-    assert "  p_suc_LS      input    16..17    float32  CDAB   1      0       bar   [-0.9, 25]" in out
+    assert "FC3 holding 110..111 (2 registers): p_m_sp, closed_loop_enable" in out   # max_read_gap 0
+    assert "  p_suc_LS            input    16..17    float32  CDAB   1      0       bar   [-0.9, 25]" in out
     assert "reserved (PLC-owned, never written): holding 0..999" in out
-    assert "1028..1029  28      advice_age_s     uint32   s" in out
+    assert "1028..1029  28      advice_age_s            uint32   s" in out
+    assert "the only registers the gateway writes (closed loop off)" in out
     assert "5    0x0020  comm_fault" in out
 
 
@@ -392,7 +394,9 @@ def test_block_moved_onto_a_plc_register_is_refused_even_without_its_tag(cfgdir)
     shutil.copy(REPO / "config" / "tags.yaml", cfgdir)
     assert problems() == [
         "config/gateway.yaml: section 'advisory': key 'start': block holding 110..173 overlaps "
-        "tag 'p_m_sp' (holding 110..110) of config/tags.yaml"]
+        "tag 'p_m_sp' (holding 110..110) of config/tags.yaml",
+        "config/gateway.yaml: section 'advisory': key 'start': block holding 110..173 overlaps "
+        "tag 'closed_loop_enable' (holding 111..111) of config/tags.yaml"]
 
 
 @pytest.mark.parametrize("change, expected", [

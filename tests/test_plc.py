@@ -45,7 +45,7 @@ PLANT = {  # a plausible operating point, engineering units
     "T_suc_LS": 11.3, "T_dis_LS": 85.2, "T_suc_HS": 42.0, "T_dis_HS": 120.5, "T_c": 69.5,
     "T_e": 10.3, "p_suc_LS": 5.25, "p_dis_LS": 15.5, "p_suc_HS": 15.25, "p_dis_HS": 30.75,
     "W_LS": 260.0, "W_HS": 190.5, "N_LS": 1500, "N_HS": 1800, "running": 1, "cip": 0,
-    "plc_clock": 1_718_000_000, "life_counter": 4711, "p_m_sp": 16.0,
+    "plc_clock": 1_718_000_000, "life_counter": 4711, "p_m_sp": 16.0, "closed_loop_enable": 0,
 }
 
 
@@ -159,10 +159,11 @@ def test_read_all_decodes_every_tag_and_falls_back_after_exception_2():
     assert first.values["T_sink_in"].raw == 4000
     reads = [(fc, a, n) for fc, a, n, _ in requests]
     # cycle 1: grouped input read, refused grouped holding read, then per-tag holding reads
-    assert reads[:5] == [(4, 0, 32), (3, 100, 11), (3, 100, 2), (3, 102, 1), (3, 110, 1)]
+    assert reads[:6] == [(4, 0, 32), (3, 100, 12), (3, 100, 2), (3, 102, 1), (3, 110, 1),
+                         (3, 111, 1)]
     # cycle 2 remembers: no second attempt at the grouped holding read
-    assert reads[5:] == [(4, 0, 32), (3, 100, 2), (3, 102, 1), (3, 110, 1)]
-    assert (first.requests, second.requests) == (5, 4)
+    assert reads[6:] == [(4, 0, 32), (3, 100, 2), (3, 102, 1), (3, 110, 1), (3, 111, 1)]
+    assert (first.requests, second.requests) == (6, 5)
 
 
 def test_grouped_read_when_the_gap_is_readable():
@@ -176,7 +177,7 @@ def test_grouped_read_when_the_gap_is_readable():
 
     result, requests = run(scenario())
     assert result.requests == 2 and all(v.ok for v in result.values.values())
-    assert [(fc, a, n) for fc, a, n, _ in requests] == [(4, 0, 32), (3, 100, 11)]
+    assert [(fc, a, n) for fc, a, n, _ in requests] == [(4, 0, 32), (3, 100, 12)]
 
 
 def test_bad_values_are_marked_never_clamped():
@@ -398,7 +399,8 @@ def cli(*argv) -> int:
 
 
 def test_read_command_prints_the_block_as_the_hmi_sees_it(capsys):
-    words = encode_advisory(CFG.advisory, {"p_m_sp_rec": 16.5, "COP_adaptive": 4.25},
+    words = encode_advisory(CFG.advisory, {"p_m_sp_rec": 16.5, "COP_adaptive": 4.25,
+                                           "closed_loop_state": 3, "closed_loop_reason": 31},
                             {"data_stale", "advice_stale"}, heartbeat=42)
 
     async def scenario():
@@ -413,12 +415,16 @@ def test_read_command_prints_the_block_as_the_hmi_sees_it(capsys):
 
     text_rc, text, json_rc, js = run(scenario())
     assert text_rc == 0 and json_rc == 0
-    assert "1000     heartbeat        42" in text
+    assert "1000     heartbeat               42" in text
+    assert "1048     closed_loop_state       3  (shed)" in text
+    assert "1049     closed_loop_reason      31  (shed_readback_mismatch)" in text
+    assert text.endswith("closed loop: shed (shed_readback_mismatch)\n")
     assert "16.5" in text and "NaN (no value)" in text
     assert "[x]  0 data_stale" in text and "[ ]  5 comm_fault" in text and "[x]  6 advice_stale" in text
     doc = json.loads(js)
     assert doc["fields"]["heartbeat"] == 42 and doc["fields"]["dCOP_pct"] is None
     assert doc["status_bits"] == ["data_stale", "advice_stale"] and doc["words"] == words
+    assert doc["closed_loop"] == {"state": "shed", "reason": "shed_readback_mismatch"}
 
 
 def test_read_command_unreachable_exits_1(capsys):

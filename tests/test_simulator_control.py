@@ -125,7 +125,8 @@ def test_schedule_in_the_export():
 
 def test_schedule_on_the_server_and_client_override():
     async def body():
-        cfg = CFG.with_sections(control={"p_m_sp_schedule": SCHED})
+        # a PLC without the remote-set-point program: a client write is taken at once
+        cfg = CFG.with_sections(control={"p_m_sp_schedule": SCHED}, remote_setpoint={"enabled": False})
         sim = PlantSimulator(cfg, port=0, speed=1200.0)
         await sim.start()
         c = AsyncModbusTcpClient("127.0.0.1", port=sim.port, timeout=2.0, retries=0)

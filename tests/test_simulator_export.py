@@ -18,7 +18,7 @@ from simulator.export import export_history, read_history
 
 CFG = load_simulator_config()
 TAGS = read_tags(CFG.tags_file)
-CANONICAL = [n for n in TAGS if n not in ("plc_clock", "life_counter")]
+CANONICAL = [n for n in TAGS if n not in ("plc_clock", "life_counter", "closed_loop_enable")]
 # a CIP early on, so that two plant days hold running, stopped and restarted rows
 SHORT_CIP = CFG.replace(cip=dataclasses.replace(CFG.cip, first_after_days=0.5, jitter_days=0.0,
                                                 duration_days=0.5, interval_days=10.0))

@@ -19,6 +19,8 @@ from simulator.config import read_advisory, read_tags, load_simulator_config
 from simulator.server import PlantSimulator
 
 CFG = load_simulator_config()
+# a PLC without the remote-set-point program: any client write to the set point is taken (clamped)
+LEGACY = CFG.with_sections(remote_setpoint={"enabled": False})
 TAGS = read_tags(CFG.tags_file)
 ADV = read_advisory(CFG.gateway_file)
 DEV = CFG.device_id
@@ -47,7 +49,7 @@ def decode(name: str, regs: list[int]) -> float:
 async def read_all(client) -> dict[str, float]:
     inp = await client.read_input_registers(0, count=32, device_id=DEV)
     hold = await client.read_holding_registers(100, count=3, device_id=DEV)
-    sp = await client.read_holding_registers(110, count=1, device_id=DEV)
+    sp = await client.read_holding_registers(110, count=2, device_id=DEV)    # p_m_sp, enable
     assert not (inp.isError() or hold.isError() or sp.isError())
     out = {}
     for name, t in TAGS.items():
@@ -77,7 +79,10 @@ def test_reads_match_plant_state():
             sim.faults.enable("frozen")          # hold the image still while reading it
             served = sim.served
             got = await read_all(c)
+            assert got["closed_loop_enable"] == 0     # the operator's, never pushed by the plant
             for name, t in TAGS.items():
+                if name == "closed_loop_enable":
+                    continue
                 want = served[name]
                 tol = 1e-5 * max(1.0, abs(want)) if t.type == "float32" else t.scale / 2 + 1e-9
                 assert got[name] == pytest.approx(want, abs=tol), name
@@ -115,7 +120,7 @@ def test_real_time_life_counter_and_clock_move_like_a_plc():
 
 def test_setpoint_write_moves_p_m_and_is_clamped():
     async def body():
-        sim, c = await started(speed=1200.0)
+        sim, c = await started(speed=1200.0, cfg=LEGACY)
         try:
             await sim.wait_ticks(1)
             sp = TAGS["p_m_sp"]
@@ -158,7 +163,7 @@ def test_writes_outside_allowed_blocks_get_exception_2_and_change_nothing():
                 lambda: c.write_register(102, 1, device_id=DEV),            # life counter
                 lambda: c.write_registers(100, [1, 2, 3], device_id=DEV),
                 lambda: c.write_register(0, 1, device_id=DEV),              # undefined holding 0
-                lambda: c.write_register(111, 1, device_id=DEV),            # next to the set point
+                lambda: c.write_register(112, 1, device_id=DEV),            # next to the enable
                 lambda: c.write_registers(109, [1, 2], device_id=DEV),      # straddles the set point
                 lambda: c.write_registers(ADV.start + ADV.size - 2, [1, 2, 3], device_id=DEV),
                 lambda: c.write_registers(ADV.start - 1, [1, 2], device_id=DEV),
@@ -239,7 +244,7 @@ def test_tag_faults_switch_on_and_off():
 
 def test_frozen_registers_stop_life_counter_and_setpoint_waits():
     async def body():
-        sim, c = await started()
+        sim, c = await started(cfg=LEGACY)
         try:
             await sim.wait_ticks(1)
             sim.faults.enable("frozen")

@@ -197,8 +197,8 @@ def render_layout(cfg) -> str:
                    f"({req.count} {what})" + (f" device {dev}" if devices else "")
                    + f": {', '.join(t.name for t in req.tags)}\n")
     out.append(f"\nAdvisory block: {adv.register} {adv.start}..{adv.end - 1} ({adv.size} "
-               f"registers, 32-bit order {adv.byte_order}), written in one FC16 request; the "
-               f"only registers the gateway writes\n")
+               f"registers, 32-bit order {adv.byte_order}), written in one FC16 request; "
+               + _closed_loop_line(cfg) + "\n")
     if cfg.reserved:
         out.append("  reserved (PLC-owned, never written): " + ", ".join(
             f"{r.register} {r.first}..{r.last}" for r in cfg.reserved) + "\n")
@@ -210,6 +210,58 @@ def render_layout(cfg) -> str:
     out.append(_table(["bit", "mask", "name"],
                       [[str(b), f"0x{1 << b:04X}", n] for b, n in adv.status_bits]))
     return "".join(out)
+
+
+def _closed_loop_line(cfg) -> str:
+    """What else than the advisory block the gateway writes (check-config)."""
+    cl = cfg.closed_loop
+    if cl is None or not cl.enabled:
+        return "the only registers the gateway writes (closed loop off)"
+    t = cfg.tag(cl.setpoint_tag)
+    return (f"the only registers the gateway writes besides the closed loop's set point "
+            f"'{t.name}' ({t.register} {_addr(t, '..')}: ON, bounds {_num(cl.bounds_bar_g[0])}.."
+            f"{_num(cl.bounds_bar_g[1])} bar(g), step {_num(cl.max_step_bar)} bar per "
+            f"{_num(cl.min_interval_s)} s, while '{cl.enable_tag}' is 1)")
+
+
+def _closed_loop_markdown(cfg) -> str:
+    """The closed loop's paragraph and code tables of docs/registers.md."""
+    from edge.closed_loop import REASON_NOTES, State
+
+    cl = cfg.closed_loop
+    adv = cfg.advisory
+    fields = {f.name for f in adv.fields}
+    if cl is not None and cl.enabled:
+        t = cfg.tag(cl.setpoint_tag)
+        head = (f"The opt-in closed loop (SPEC 7.4, docs/closed_loop.md) is **enabled** in "
+                f"`{cfg.path.name}`: besides this block the gateway writes the set-point register "
+                f"`{t.name}` ({t.register} {_addr(t)}) and nothing else, only while the operator's "
+                f"`{cl.enable_tag}` is 1, inside {_num(cl.bounds_bar_g[0])}–"
+                f"{_num(cl.bounds_bar_g[1])} bar(g), at most {_num(cl.max_step_bar)} bar per "
+                f"{_num(cl.min_interval_s)} s; the PLC falls back when the heartbeat has not "
+                f"changed for {_num(cl.heartbeat_timeout_s)} s.")
+    else:
+        head = (f"The opt-in closed loop (SPEC 7.4, docs/closed_loop.md) is **off** in "
+                f"`{cfg.path.name}` (`closed_loop.enabled: false`): the gateway writes no "
+                f"register but this block.")
+    md = [f"\n### Closed loop\n\n{head}\n"]
+    if "closed_loop_state" in fields:
+        reg = adv.start + adv.field("closed_loop_state").offset
+        md.append(f"\n`closed_loop_state` (register {reg}):\n\n| value | state | meaning |\n"
+                  "|---|---|---|\n")
+        meaning = {State.OFF: "not enabled (gateway.yaml or the operator): no set-point write",
+                   State.ARMED: "enabled and holding: at the recommendation, or a guard holds it",
+                   State.WRITING: "enabled and moving the set point toward the recommendation",
+                   State.SHED: "stopped itself; writes nothing until the operator drops the enable"}
+        for st in State:
+            md.append(f"| {int(st)} | `{st.name.lower()}` | {meaning[st]} |\n")
+    if "closed_loop_reason" in fields:
+        reg = adv.start + adv.field("closed_loop_reason").offset
+        md.append(f"\n`closed_loop_reason` (register {reg}):\n\n| value | reason | meaning |\n"
+                  "|---|---|---|\n")
+        for r, note in REASON_NOTES.items():
+            md.append(f"| {int(r)} | `{r.name.lower()}` | {note} |\n")
+    return "".join(md)
 
 
 def render_markdown(cfg) -> str:
@@ -264,8 +316,8 @@ def render_markdown(cfg) -> str:
               f"{adv.register.capitalize()} registers {adv.start}–{adv.end - 1} "
               f"({adv.size} registers), written as a whole in one FC16 request per cycle. "
               f"32-bit fields use byte order {adv.byte_order}. The gateway writes no other "
-              f"register. Words not listed are written as 0. A float32 field without a value "
-              f"holds NaN.\n\n")
+              f"register, except the set point of the opt-in closed loop (below). Words not "
+              f"listed are written as 0. A float32 field without a value holds NaN.\n\n")
     md.append("| address | ref | offset | field | type | unit | description |\n"
               "|---|---|---|---|---|---|---|\n")
     for f in adv.fields:
@@ -283,6 +335,7 @@ def render_markdown(cfg) -> str:
               f"significant)\n\n| bit | mask | name | meaning |\n|---|---|---|---|\n")
     for bit, name in adv.status_bits:
         md.append(f"| {bit} | 0x{1 << bit:04X} | `{name}` | {STATUS_BIT_NOTES.get(name, '')} |\n")
+    md.append(_closed_loop_markdown(cfg))
     return "".join(md)
 
 
@@ -369,6 +422,9 @@ def _format_json(adv, target: str, words: list[int], decoded: dict) -> str:
     doc = {"server": target, "register": adv.register, "start": adv.start, "size": adv.size,
            "words": words, "fields": {f.name: clean(decoded[f.name]) for f in adv.fields},
            "status_bits": decoded["status_bits"]}
+    names = _closed_loop_names(decoded)
+    if names:
+        doc["closed_loop"] = names
     return json.dumps(doc, indent=2) + "\n"
 
 
@@ -385,8 +441,10 @@ def _format_text(adv, target: str, decoded: dict) -> str:
             shown = "NaN (no value)" if math.isnan(v) else f"{v:.6g}"
         else:
             shown = str(v)
-        if f.name == "last_update" and v:
+        if f.name in ("last_update", "closed_loop_last_write") and v:
             shown += "  (" + datetime.fromtimestamp(v, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ") + ")"
+        elif f.name in ("closed_loop_state", "closed_loop_reason"):
+            shown += f"  ({_closed_loop_names(decoded)[f.name.removeprefix('closed_loop_')]})"
         rows.append([str(adv.start + f.offset), f.name, shown, f.unit])
     out = [f"advisory block {adv.register} {adv.start}..{adv.end - 1} from {target}\n",
            _table(["address", "field", "value", "unit"], rows), "status bits:\n"]
@@ -395,7 +453,22 @@ def _format_text(adv, target: str, decoded: dict) -> str:
         out.append(f"  [{'x' if name in set_bits else ' '}] {bit:2d} {name}\n")
     for extra in sorted(set_bits - {n for _, n in adv.status_bits}):
         out.append(f"  [x]    {extra} (not configured)\n")
+    names = _closed_loop_names(decoded)
+    if names:
+        out.append(f"closed loop: {names['state']}" + (f" ({names['reason']})"
+                                                         if names["reason"] != "none" else "")
+                   + "\n")
     return "".join(out)
+
+
+def _closed_loop_names(decoded: dict) -> dict:
+    """{'state': name, 'reason': name} from the decoded block ({} without those fields)."""
+    from edge.closed_loop import reason_name, state_name
+
+    if "closed_loop_state" not in decoded:
+        return {}
+    return {"state": state_name(decoded["closed_loop_state"]),
+            "reason": reason_name(decoded.get("closed_loop_reason", 0))}
 
 
 # ----------------------------------------------------------------------------- run, demo

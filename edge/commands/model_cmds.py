@@ -42,7 +42,8 @@ def register(sub) -> None:
                        description="Benchmarks of every part; prints one JSON document.")
     b.add_argument("--config", default=None, help=PLANT_HELP)
     b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
-                   help="comma-separated sections (model,simulator,analysis,gateway,inputs)")
+                   help="comma-separated sections (model,simulator,analysis,gateway,inputs; "
+                   "also advice and closed_loop, which run longer)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -141,7 +142,8 @@ def cmd_bench(args) -> int:
              "analysis": ("model.bench_analysis", "bench_analysis"),
              "gateway": ("edge.bench_gateway", "bench_gateway"),
              "advice": ("edge.bench_advice", "bench_advice"),
-             "inputs": ("edge.bench_inputs", "bench_inputs")}
+             "inputs": ("edge.bench_inputs", "bench_inputs"),
+             "closed_loop": ("edge.bench_closed_loop", "bench_closed_loop")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",

@@ -294,6 +294,37 @@ class FoulingFit:
                 "n": self.n, "t_first_days": self.t_first, "t_last_days": self.t_last, "s2": self.s2,
                 "reason": self.reason, "p_curvature": num(self.p_curvature)}
 
+    def to_state(self) -> dict:
+        """Everything needed to rebuild the fit (``from_state``), as plain JSON numbers; the
+        analysis chain keeps the earlier cycles' fits in its state file (for ``law_prior``)."""
+        cov = np.asarray(self.cov, dtype=float)
+        return {"law": self.law, "floor": self.floor, "a0": self.a0, "r0": self.r0, "k": self.k,
+                "cov": [[float(x) if math.isfinite(x) else None for x in row] for row in cov],
+                "s2": self.s2, "se_typ": self.se_typ, "n": self.n, "dof": self.dof,
+                "t_first": self.t_first, "t_last": self.t_last, "reason": self.reason,
+                "p_curvature": self.p_curvature if math.isfinite(self.p_curvature) else None,
+                "n_dropped": self.n_dropped, "overlap": self.overlap}
+
+    @classmethod
+    def from_state(cls, d: dict) -> "FoulingFit":
+        """The fit of ``to_state``; ForecastError when the document is not one."""
+        try:
+            law = d["law"]
+            if law not in LAWS:
+                raise ValueError(f"law {law!r}")
+            cov = np.array([[math.inf if x is None else float(x) for x in row] for row in d["cov"]])
+            p = 3 if law == "kern_seaton" else 2
+            if cov.shape != (p, p):
+                raise ValueError(f"covariance of shape {cov.shape} for the {law} law")
+            pc = d.get("p_curvature")
+            return cls(law, float(d["floor"]), float(d["a0"]), float(d["r0"]), float(d["k"]), cov,
+                       float(d["s2"]), float(d["se_typ"]), int(d["n"]), float(d["dof"]),
+                       float(d["t_first"]), float(d["t_last"]), str(d.get("reason", "")),
+                       math.nan if pc is None else float(pc), int(d.get("n_dropped", 0)),
+                       float(d.get("overlap", 1.0)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ForecastError(f"not a fouling fit: {exc}") from None
+
     def summary(self, unit: str = "", scale: float = 1.0, scale_label: str = "") -> str:
         se = self.std_errors()
         f = (lambda v: f"{v * scale:.4g}{scale_label}")

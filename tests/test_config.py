@@ -37,7 +37,7 @@ def test_default_config_loads():
     assert cfg.plc.host == "127.0.0.1" and cfg.plc.port == 5020 and cfg.plc.device_id == 1
     adv = cfg.advisory
     assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 64, "ABCD")
-    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2))
+    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 46, 2))
     assert adv.field("last_update").type == "uint32"
     assert dict(adv.status_bits)[5] == "comm_fault"
     assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "model"
@@ -335,7 +335,7 @@ def test_check_config_prints_the_layout(cfgdir, capsys, no_network):
     assert "FC3 holding 110..110 (1 register): p_m_sp" in out     # max_read_gap 0 as shipped
     assert "  p_suc_LS      input    16..17    float32  CDAB   1      0       bar   [-0.9, 25]" in out
     assert "reserved (PLC-owned, never written): holding 0..999" in out
-    assert "1028..1029  28      advice_age_s     uint32   s" in out
+    assert "1028..1029  28      advice_age_s      uint32   s" in out
     assert "5    0x0020  comm_fault" in out
 
 

@@ -276,9 +276,11 @@ def advise_cip(*, t_days, R_K_per_kW, R_se_K_per_kW, t_now_days: float, cop_leve
         comps = [FoulingComponent(R_fit, removal.share, cost_curve, "R_th_f", uncertain=s.uncertain)]
         if CF_fit is not None:
             share_dp = s.dp_removal_share_default if dp_removal_share is None else dp_removal_share
+            # the pumps' share of the cost is small (~1 % of the compressors'): planned on the mean
+            # curve, without the sigma points (half the plan's time)
             comps.append(FoulingComponent(CF_fit, share_dp, pump_cost_curve(dp_clean_bar, V_source_m3_per_h, price,
                                                                             s.eta_pump),
-                                          "CF_dp_f", uncertain=s.uncertain))
+                                          "CF_dp_f", uncertain=False))
         if cip_cost_eur is not None:
             C = float(cip_cost_eur)
         else:

@@ -284,17 +284,24 @@ class LevelRuns:
         for k, a in zip(("R_K_per_kW", "Q_sink_kW", "W_kW", "Q_source_kW"), (R, Q, W, Qs)):
             object.__setattr__(self, k, a)
 
-    def at(self, R_K_per_kW: float) -> tuple[float, float, float]:
-        """(Q_sink, W, Q_source) [kW] at a level, linearly interpolated (extrapolated beyond)."""
-        return tuple(float(CostCurve(self.R_K_per_kW, a)(R_K_per_kW))
-                     for a in (self.Q_sink_kW, self.W_kW, self.Q_source_kW))
+    def at(self, R_K_per_kW):
+        """(Q_sink, W, Q_source) [kW] at a level (or an array of levels), linearly interpolated
+        (extrapolated beyond the outer levels)."""
+        x = self.R_K_per_kW
+        y = np.stack([self.Q_sink_kW, self.W_kW, self.Q_source_kW])          # (3, n)
+        R = np.asarray(R_K_per_kW, dtype=float)
+        i = np.clip(np.searchsorted(x, R, side="right") - 1, 0, len(x) - 2)
+        u = (R - x[i]) / (x[i + 1] - x[i])
+        out = y[:, i] + (y[:, i + 1] - y[:, i]) * u
+        return tuple(float(v) for v in out) if R.ndim == 0 else tuple(out)
 
 
 def fouling_cost_terms(fouled, reference, price_eur_per_MWh: float,
                        replacement_heat_eur_per_MWh: float) -> dict:
     """Cost of operating at the fouled level against the reference level, at equal heat.
 
-    fouled, reference : (Q_sink, W, Q_source) [kW] of the same operation (``LevelRuns.at``)
+    fouled, reference : (Q_sink, W, Q_source) [kW] of the same operation (``LevelRuns.at``); the
+        fouled values may be arrays (one cost per level)
     Compressors: the electricity the fouled plant needs for the heat it delivers beyond what the
         reference plant needs for that heat, P_comp = Q_f (1/COP_f - 1/COP_r) = W_f - Q_f W_r/Q_r.
     Lost capacity: where fouling drives the LS compressor to its speed limit, T_source,out floats
@@ -304,17 +311,19 @@ def fouling_cost_terms(fouled, reference, price_eur_per_MWh: float,
         it costs L * max(p_heat - p/COP_r, 0) (nothing when bought heat is cheaper).
     Returns P_compressor_kW, lost_heat_kW, cost_eur_per_day (both parts, 24 h/day).
     """
-    Qf, Wf, Qsf = fouled
-    Qr, Wr, Qsr = reference
-    if not (Qr > Wr > 0 and Qsr > 0 and Qf > 0):
+    Qf, Wf, Qsf = (np.asarray(v, dtype=float) for v in fouled)
+    Qr, Wr, Qsr = (float(v) for v in reference)
+    if not (Qr > Wr > 0 and Qsr > 0 and np.all(Qf > 0)):
         raise CostError(f"reference run must have Q_sink > W > 0, got {reference!r}")
     p = float(price_eur_per_MWh)
     ph = float(replacement_heat_eur_per_MWh)
     if not (math.isfinite(p) and math.isfinite(ph) and ph >= 0):
         raise CostError(f"prices must be finite (heat >= 0), got {p!r}, {ph!r}")
     P = Wf - Qf * Wr / Qr
-    L = max(Qsr - Qsf, 0.0) * Qr / Qsr
+    L = np.maximum(Qsr - Qsf, 0.0) * Qr / Qsr
     cost = HOURS_PER_DAY / 1e3 * (p * P + L * max(ph - p * Wr / Qr, 0.0))
+    if P.ndim:
+        return {"P_compressor_kW": P, "lost_heat_kW": L, "cost_eur_per_day": cost}
     return {"P_compressor_kW": float(P), "lost_heat_kW": float(L), "cost_eur_per_day": float(cost)}
 
 
@@ -322,10 +331,9 @@ def fouling_cost_curve(runs: LevelRuns, price_eur_per_MWh: float,
                        replacement_heat_eur_per_MWh: float) -> CostCurve:
     """f(R_th,f) [EUR/day] against a clean evaporator (``fouling_cost_terms`` at each level;
     linear between them): the compressor part and lost capacity, not the pumps."""
-    ref = runs.at(0.0)
-    f = [fouling_cost_terms(runs.at(R), ref, price_eur_per_MWh, replacement_heat_eur_per_MWh)
-         ["cost_eur_per_day"] for R in runs.R_K_per_kW]
-    return CostCurve(runs.R_K_per_kW, np.array(f))
+    f = fouling_cost_terms((runs.Q_sink_kW, runs.W_kW, runs.Q_source_kW), runs.at(0.0), price_eur_per_MWh,
+                           replacement_heat_eur_per_MWh)["cost_eur_per_day"]
+    return CostCurve(runs.R_K_per_kW, np.atleast_1d(f))
 
 
 def pump_cost_curve(dp_clean_bar: float, V_source_m3_per_h: float, price_eur_per_MWh: float,

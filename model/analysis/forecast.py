@@ -41,7 +41,9 @@ estimates, or a span (last t - first t) shorter than ``min_span_days`` (1 day: s
 the daily cycle of the operation, not the fouling trend).
 
 Uncertainty. Cov = s^2 * (J^T W J)^-1 from the Jacobian J of the chosen law at the optimum,
-multiplied by ``overlap`` when consecutive estimates share data. With g(t) the gradient of y(t) with
+multiplied by ``overlap`` when consecutive estimates share data, or by (1 + rho)/(1 - rho) when the
+residuals' lag-1 autocorrelation rho is larger than chance (2/sqrt(n)) and that is more: estimates
+whose errors follow the daily operation are not independent (``fit_fouling``). With g(t) the gradient of y(t) with
 respect to the parameters and q the (1 + level)/2 quantile of Student's t with n - p degrees of
 freedom (divided by ``overlap``):
 
@@ -89,6 +91,7 @@ class FitSettings:
     max_rel_se_k: float = 0.5
     max_tau_span_ratio: float = 10.0
     se_floor_share: float = 0.25
+    autocorrelation: bool = True       # widen for serially correlated residuals (module docstring)
 
     def __post_init__(self):
         checks = (("min_windows", self.min_windows >= 3), ("min_span_days", self.min_span_days > 0),
@@ -447,6 +450,38 @@ def _profile(t, yc, sw, k_hi, objective, grid_objective):
 
 def fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, overlap: float = 1.0,
                 prior: LawPrior | None = None, settings: FitSettings | None = None) -> FoulingFit:
+    """Fit the fouling law to the window estimates since the last reset (``_fit_fouling``), then
+    look at the residuals in time order: where they are serially correlated beyond chance (lag-1
+    autocorrelation rho > 2/sqrt(n); a daily pattern in the estimates, or windows sharing data),
+    the n estimates carry the information of about n (1 - rho)/(1 + rho) independent ones, and the
+    fit is redone with overlap = (1 + rho)/(1 - rho) (at most n/4) when that is larger than the
+    given one: wider bands and a law choice that needs more evidence (``FitSettings.autocorrelation``)."""
+    s = settings or FitSettings()
+    fit = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=overlap, prior=prior, settings=s)
+    if not s.autocorrelation:
+        return fit
+    t = np.asarray(t_days, dtype=float).ravel()
+    yy = np.asarray(y, dtype=float).ravel()
+    keep = np.isfinite(t) & np.isfinite(yy)
+    order = np.argsort(t[keep], kind="stable")
+    e = (yy[keep] - fit.value(t[keep]))[order]
+    e = e - e.mean()
+    n = len(e)
+    den = float(np.sum(e * e))
+    rho = float(np.sum(e[1:] * e[:-1]) / den) if den > 0 and n > 3 else 0.0
+    fit.extra["residual_rho"] = rho
+    if not rho > 2.0 / math.sqrt(n):
+        return fit
+    eff = min((1.0 + rho) / max(1.0 - rho, 1e-6), n / 4.0)
+    if eff <= overlap:
+        return fit
+    out = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=eff, prior=prior, settings=s)
+    out.extra["residual_rho"] = rho
+    return out
+
+
+def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, overlap: float = 1.0,
+                 prior: LawPrior | None = None, settings: FitSettings | None = None) -> FoulingFit:
     """Fit the fouling law to the window estimates since the last reset.
 
     t_days : days since the last reset (commissioning or a CIP's end) of each estimate [day], >= 0

@@ -101,6 +101,7 @@ class Account:
     downtime_min: int = 0
     n_cips: int = 0
     last_demand_kW: float = math.nan
+    last_rate: float = math.nan          # the minute's true cost of fouling [EUR/day] (NaN: not running)
 
     @property
     def total_eur(self) -> float:
@@ -120,6 +121,7 @@ class Account:
         self.demand_MWh += Qc * h
         self.baseline_eur += Wc * h * self.price
         sp = plant.steady
+        self.last_rate = math.nan
         if not plant.running or sp.res is None:
             self.downtime_min += 1
             self.downtime_heat_eur += Qc * h * self.heat_price
@@ -134,6 +136,7 @@ class Account:
         self.pumps_eur += max(pump, 0.0) * h * self.price
         self.heat_MWh += Q * h
         self.running_heat_eur += (Qc - Q) * h * self.heat_price
+        self.last_rate = 24.0 / 1e3 * ((W - Wc + max(pump, 0.0)) * self.price + (Qc - Q) * self.heat_price)
 
     def cip(self) -> None:
         self.n_cips += 1
@@ -213,8 +216,11 @@ class Advised:
         self.context: list[dict] = []
         self.block_end: float | None = None
         self.log: list[dict] = []           # per window: the figures the accuracy needs
-        self.seconds: list[float] = []      # the forecast step of each window
+        self.seconds: list[float] = []      # the forecast step of each window (wall time)
+        self.cpu_seconds: list[float] = []  # the same, CPU time of the thread (the machine is shared)
         self.window_seconds: list[float] = []   # the whole chain window
+        self.held = False                   # a CIP was asked for: no new date until it has happened
+        self.truth_rates: list[float] = []  # the plant's true fouling cost rate per running minute
 
     def wants(self, run: "Run") -> bool:
         return run.t >= self.due
@@ -223,6 +229,8 @@ class Advised:
         if self.block_end is None:
             self.block_end = run.t0 + self.window_s
         self.rows.append(row)
+        if math.isfinite(run.account.last_rate):
+            self.truth_rates.append(run.account.last_rate)
         if run.t + 60.0 >= self.block_end - 1e-6:
             self._window(run)
             self.block_end += self.window_s
@@ -246,6 +254,7 @@ class Advised:
             if found is not None:
                 self.chain.cip(self.state, found[0], found[1], found[2])
                 self.due = math.inf
+                self.held = False
         reset = self.state.forecast.reset_s
         use = pr["usable"].to_numpy(dtype=bool).copy()
         if reset is not None:
@@ -259,13 +268,18 @@ class Advised:
         if not res.ok:
             return
         self.seconds.append(res.detail.get("cip", {}).get("seconds", math.nan))
+        self.cpu_seconds.append(res.detail.get("cip", {}).get("cpu_seconds", math.nan))
         d = res.days_to_recommended_cip
-        self.due = res.t_end + d * DAY_S if math.isfinite(d) else math.inf
+        if not self.held:        # rows from before a CIP that was asked for: no new date
+            self.due = res.t_end + d * DAY_S if math.isfinite(d) else math.inf
+        truth = float(np.mean(self.truth_rates)) if self.truth_rates else math.nan
+        self.truth_rates = []
         self.log.append({"t_end": res.t_end, "since": res.days_since_reset,
                          "value": res.R_th_f_forecast_K_per_kW, "lo": res.R_th_f_forecast_lo_K_per_kW,
                          "hi": res.R_th_f_forecast_hi_K_per_kW, "R": res.R_th_f_K_per_kW,
                          "T_opt": res.cip_interval_opt_days, "days_to_cip": d, "law": res.forecast_law,
-                         "share": res.removal_share, "cost": res.fouling_cost_eur_per_day})
+                         "share": res.removal_share, "cost": res.fouling_cost_eur_per_day,
+                         "truth_cost": truth})
 
 
 @dataclass
@@ -386,7 +400,7 @@ def run_policies(params, *, days: float = 120.0, fixed=FIXED_DAYS, advised: bool
                     plant.request_cip()
                     for p in want:          # asked for: the advice restarts after the CIP
                         if isinstance(p, Advised):
-                            p.due = math.inf
+                            p.due, p.held = math.inf, True
             was_down = not plant.running
             run.account.minute(plant, clean.at(plant))
             if any(isinstance(p, Advised) for p in run.policies):
@@ -496,6 +510,9 @@ def bench_cip(params=None, *, days: float = 120.0, fixed=FIXED_DAYS, window_hour
     a = by_policy[Advised.name]["cycle_total_eur"]
     a_ex = by_policy[Advised.name]["excess_per_day_eur"]
     sec = np.array([s for s in adv.seconds if math.isfinite(s)])
+    cpu = np.array([s for s in adv.cpu_seconds if math.isfinite(s)])
+    pairs = np.array([(e["cost"], e["truth_cost"]) for e in adv.log
+                      if math.isfinite(e["cost"]) and math.isfinite(e["truth_cost"])])
     result = {
         "targets": TARGETS, "prices": out["prices"], "simulator": out["sim"], "days": days,
         "window_hours": window_hours, "solve_interval_s": solve_interval_s,
@@ -510,7 +527,14 @@ def bench_cip(params=None, *, days: float = 120.0, fixed=FIXED_DAYS, window_hour
         "advised_excess_vs_median": a_ex / float(np.median(ex)) - 1.0,
         "forecast": forecast_accuracy(adv, adv_run, t0),
         "forecast_step_ms": {"median": 1e3 * float(np.median(sec)), "p95": 1e3 * float(np.percentile(sec, 95)),
-                             "max": 1e3 * float(np.max(sec)), "windows": int(len(sec))},
+                             "max": 1e3 * float(np.max(sec)), "windows": int(len(sec)),
+                             "cpu_median": 1e3 * float(np.median(cpu)), "cpu_p95": 1e3 * float(np.percentile(cpu, 95)),
+                             "cpu_max": 1e3 * float(np.max(cpu))},
+        # the chain's cost of fouling against the plant's true one over the same 2-h blocks
+        "cost_of_fouling_eur_per_day": {"chain_mean": float(pairs[:, 0].mean()),
+                                        "truth_mean": float(pairs[:, 1].mean()),
+                                        "ratio_of_means": float(pairs[:, 0].mean() / pairs[:, 1].mean()),
+                                        "windows": int(len(pairs))},
         "chain_window_s": {"median": float(np.median(adv.window_seconds)),
                            "max": float(np.max(adv.window_seconds))},
         "advised_trail": _trail(adv.log, t0),

@@ -59,7 +59,7 @@ class CipSettings:
     enabled: bool = True
     cost_levels_K_per_kW: tuple = (2.0e-3, 4.0e-3, 6.0e-3, 8.0e-3)   # the plan's cost curve (and 0)
     cost_levels_per_window: int = 2      # of them run per window, in turn (the plan averages)
-    cost_average_hours: float = 24.0     # the plan's cost curve: mean over this much of operation
+    cost_average_hours: float = 168.0    # the plan's cost curve: mean over this much of operation
     cost_points: int = 4                 # representative operating points of the cost model runs
     tally_max_gap_h: float = 1.0         # gaps between windows bridged in the cumulated cost
     max_estimates: int = 5000            # window estimates kept since the last reset (older thinned)

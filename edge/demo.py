@@ -149,7 +149,7 @@ async def _demo(cfg, where: Path, speed: float, minutes: float | None, refresh_s
         service = GatewayService(dcfg, time_source="plc", install_signals=True)
         gw = service.gateway
         run = asyncio.create_task(service.run(), name="hp-edge-gateway")
-        view = asyncio.create_task(_view(sim, gw, dcfg, refresh_s, out, where, speed))
+        view = asyncio.create_task(_view(sim, gw, dcfg, refresh_s, out, where, speed, service.advisor))
         timer = None
         if minutes is not None:
             timer = asyncio.get_running_loop().call_later(minutes * 60.0, gw.request_stop)
@@ -161,7 +161,7 @@ async def _demo(cfg, where: Path, speed: float, minutes: float | None, refresh_s
             view.cancel()
             await asyncio.gather(view, return_exceptions=True)
         _print(out, _render(sim, gw, dcfg, await _read_block(sim, dcfg), where, speed,
-                            final=True))
+                            final=True, advisor=service.advisor))
         writes_outside = sim.writes_outside(dcfg.advisory.start, dcfg.advisory.size)
         if writes_outside:
             log.error("writes outside the advisory block: %s", writes_outside)
@@ -203,10 +203,11 @@ async def _read_block(sim, cfg: GatewayConfig) -> dict:
     return decode_advisory(cfg.advisory, words)
 
 
-async def _view(sim, gw, cfg, refresh_s, out, where, speed) -> None:
+async def _view(sim, gw, cfg, refresh_s, out, where, speed, advisor=None) -> None:
     while True:
         await asyncio.sleep(refresh_s)
-        _print(out, _render(sim, gw, cfg, await _read_block(sim, cfg), where, speed), clear=True)
+        _print(out, _render(sim, gw, cfg, await _read_block(sim, cfg), where, speed, advisor=advisor),
+               clear=True)
 
 
 def _print(out: TextIO, text: str, clear: bool = False) -> None:
@@ -224,7 +225,8 @@ def _f(v, fmt: str, unit: str = "", none: str = "-") -> str:
     return f"{v:{fmt}}{(' ' + unit) if unit else ''}"
 
 
-def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = False) -> str:
+def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = False,
+            advisor=None) -> str:
     truth = sim.truth or {}
     t = sim.plant_time
     snap = gw.snapshot
@@ -267,6 +269,7 @@ def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = Fa
         f"  calibration NRMSE   {_f(blk.get('nrmse_pct'), '7.2f', '%')}   compressor eta_is vs "
         f"commissioning LS {_f(blk.get('eta_is_LS_drift'), '+.2f')} HS "
         f"{_f(blk.get('eta_is_HS_drift'), '+.2f')} points",
+        *_cip_lines(blk, advisor),
         f"history and log in {where}" + ("  (temporary)" if "hp-edge-demo-" in str(where) else ""),
     ]
     if final:
@@ -279,3 +282,25 @@ def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = Fa
 
 def _milli(v):
     return None if v is None else v * 1e3
+
+
+def _cip_lines(blk: dict, advisor=None, width: int = 100, max_lines: int = 6) -> list[str]:
+    """Issue 10: the forecast and cost registers, and the last window's "when to clean" in words
+    (the lines replay's summary.txt has)."""
+    import textwrap
+    horizon = getattr(getattr(getattr(getattr(advisor, "chain", None), "s", None), "cip", None),
+                      "horizon_days", None)
+    h = f"{horizon:g} d" if horizon is not None else "the horizon"
+    out = [f"  fouling forecast    rate {_f(_milli(blk.get('fouling_rate')), '.3f', 'e-3 K/kW per day')}   "
+           f"R_th,f in {h} {_f(_milli(blk.get('R_th_f_forecast')), '.3f', 'e-3 K/kW')}",
+           f"  cost of fouling     {_f(blk.get('fouling_cost'), '.0f', 'EUR/d')}   since the last CIP "
+           f"{_f(blk.get('fouling_cost_cum'), '.0f', 'EUR')}   recommended CIP in "
+           f"{_f(blk.get('days_to_cip'), '.1f', 'days')}"]
+    text = list(getattr(advisor, "cip_text", None) or [])
+    if text:
+        wrapped = []
+        for line in text:
+            wrapped += textwrap.wrap(line, width - 20, subsequent_indent="  ")
+        out += [("  when to clean       " if i == 0 else " " * 22) + w
+                for i, w in enumerate(wrapped[:max_lines])]
+    return out

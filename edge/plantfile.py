@@ -73,6 +73,16 @@ PLANT_SCHEMA: dict = {
     "surrogate": dict.fromkeys(("reference_p_m_sp_barg", "fouling_levels_K_per_kW",
                                 "points_per_level", "T_source_in_C", "source_cooling_K",
                                 "T_sink_in_C", "V_source_m3h", "V_sink_m3h", "seed")),
+    # issue 10: fouling forecast, cost of fouling, CIP timing (model.analysis.cip.CIP_KEYS,
+    # CipSettings.from_config); every key optional. electricity_price_csv is read by
+    # edge.io.prices (relative to plant.yaml's folder) and checked here too
+    "cip": dict.fromkeys(("enabled", "electricity_price_eur_per_MWh", "electricity_price_csv",
+                          "pump_efficiency", "direct_cost_eur", "downtime_h",
+                          "replacement_heat_eur_per_MWh", "removal_share_default",
+                          "dp_removal_share_default", "horizon_days", "band_level",
+                          "R_th_f_limit_K_per_kW", "current_interval_days", "trigger",
+                          "cost_levels_K_per_kW", "cost_levels_per_window", "cost_average_hours",
+                          "cost_points", "tally_max_gap_h", "max_estimates")),
 }
 
 
@@ -91,8 +101,15 @@ def check_plant(p: Problems, path: Path, file: str | None = None) -> dict | None
     check_schema(top, PLANT_SCHEMA)
     if len(p.lines) != n0:
         return data     # values are not checked on a file of the wrong shape
-    for msg in _value_problems(data):
+    problems = _value_problems(data)
+    for msg in problems:
         p.add(file, None, None, msg)
+    if not problems:                       # the price series plant.yaml names (issue 10)
+        from edge.io.prices import PriceFileError, price_for_plant
+        try:
+            price_for_plant(data, path)
+        except PriceFileError as exc:
+            p.add(file, None, None, f"key 'cip.electricity_price_csv': {exc}")
     return data
 
 

@@ -11,6 +11,12 @@ window (model.analysis.chain, the same chain replay runs) -> advisory values.
   calibration, learned compressors, what the next window needs) in the state directory;
 * ``restored()`` - the last good advice after a restart.
 
+CIPs (issue 10): ``ingest`` feeds every stored sample to a ``model.analysis.cip.CipWatch`` (replay's
+rule: a stop with the CIP flag, or longer than plant.yaml's calibration.replay.cip_off_minutes; and a
+hole in the samples that long) and calls ``AnalysisChain.cip`` when one ends: the fouling forecast and
+the cumulated cost restart there. The forecast's memory (window estimates since the reset, the past
+CIPs, earlier cycles' laws) and a stop in progress persist in chain_state.json.
+
 The fixed model is plant.yaml plus the initial calibration and the clean pressure-drop fit from the
 state directory when they exist; the adaptive model adds the learned compressor curves and the
 latest fouling calibration.
@@ -43,7 +49,10 @@ from edge.statefiles import StateError
 from edge.store import HistoryStore
 from model import measured
 from model.analysis.chain import AnalysisChain, ChainSettings, WindowResult
+from model.analysis.cip import CipWatch, ForecastState
 from model.analysis.compressors import CompressorLearner, LearningError
+from model.analysis.cost import CostError
+from model.analysis.replay import ReplayError, ReplaySettings
 from model.analysis.surrogate_tracker import SurrogateTracker, TrackerError
 from model.batch import INPUT_COLUMNS, simulate_batch, solved_mask
 from model.calibration import CalibrationError, spec_from_config
@@ -151,18 +160,25 @@ class ModelAdvisor:
         except ParamError as exc:
             raise StartupError(f"{cfg.plant_file}: {exc}") from exc
         self.state = state_io.load_all()
+        from edge.io.prices import PriceFileError, price_for_plant
+        try:
+            price = price_for_plant(self.base.extra, cfg.plant_file)
+        except PriceFileError as exc:
+            raise StartupError(f"{cfg.plant_file}: key 'cip.electricity_price_csv': {exc}") from exc
         try:
             self.spec = spec_from_config(self.base.extra, "fouling")
             self.chain = AnalysisChain(self.base, self.spec, ChainSettings.from_config(
-                self.base.extra, min_samples=int(cfg.min_window_samples),
+                self.base.extra, cip_price=price, min_samples=int(cfg.min_window_samples),
                 optimize=cfg.optimizer in ("model", "auto"), use_surrogate=cfg.optimizer == "auto"))
+            self._watch = CipWatch(ReplaySettings.from_config(self.base.extra).cip_off_minutes)
             learner = (CompressorLearner.from_dict(self.state.compressors, self.base,
                                                    self.chain.s.learning)
                        if self.state.compressors is not None else None)
             self.cstate = self.chain.new_state(self.state.initial, self.state.dp_clean, learner)
-        except (CalibrationError, LearningError, KeyError, TypeError, ValueError) as exc:
+        except (CalibrationError, LearningError, ReplayError, KeyError, TypeError, ValueError) as exc:
             raise StartupError(f"calibration state in {getattr(state_io, 'dir', '?')} or "
                                f"{cfg.plant_file}: {exc}") from exc
+        self.cip_text: list[str] = []      # the last window's "when to clean", for the demo screen
         self._restore_chain(self.state.chain)
         self.fixed = self.cstate.fixed
         self.surrogate = self.state.surrogate   # model.surrogate.Surrogate or None
@@ -235,11 +251,40 @@ class ModelAdvisor:
         prev = doc.get("fouling_previous")
         if isinstance(prev, dict):
             st.fouling_previous = prev
+        fc = doc.get("forecast")
+        if isinstance(fc, dict):      # issue 10: the forecast's memory since the last reset
+            try:
+                st.forecast = ForecastState.from_dict(fc)
+            except CostError as exc:  # the gateway's own result: start the forecast afresh
+                log.error("chain_state.json: %s; the fouling forecast starts afresh", exc)
+        self._watch.restore(doc.get("cip_watch"))
 
     def _chain_doc(self) -> dict:
         st = self.cstate
         return {"last_rec_barg": st.last_rec_barg, "cond_factor": st.cond_factor,
-                "T_out_sp_C": st.T_out_sp_C, "fouling_previous": st.fouling_previous}
+                "T_out_sp_C": st.T_out_sp_C, "fouling_previous": st.fouling_previous,
+                "forecast": st.forecast.to_dict(), "cip_watch": self._watch.to_dict()}
+
+    def _watch_cips(self, stored: list[dict]) -> None:
+        """Issue 10: CIPs in the stored samples (``CipWatch``) reset the chain's forecast; the
+        state is saved when a stop begins or a CIP ends (a restart in between keeps it)."""
+        changed = False
+        for rec in stored:
+            down = str(rec.get("reason") or "").split(":")[0] in ("off", "cip")
+            flag = rec.get("cip")
+            flagged = isinstance(flag, (int, float)) and not isinstance(flag, bool) \
+                and math.isfinite(flag) and flag > 0.5
+            was = self._watch.down_since
+            found = self._watch.feed(float(rec["ts"]), down, flagged)
+            changed |= was is None and self._watch.down_since is not None
+            if found is not None:
+                start, end, kind = found
+                if self.chain.cip(self.cstate, start, end, kind):
+                    log.info("CIP %s .. %s (%s): the fouling forecast restarts", _iso(start), _iso(end),
+                             kind)
+                changed = True
+        if changed:
+            self._save_state({statefiles.CHAIN: self._chain_doc()})
 
     # ------------------------------------------------------------------------- ingest
 
@@ -279,6 +324,7 @@ class ModelAdvisor:
             self.store.add_samples(out)
             for row in rows:
                 self._context.append(row)
+            self._watch_cips(out)
         return out
 
     def _load_context(self) -> None:
@@ -306,7 +352,16 @@ class ModelAdvisor:
                           message=f"{n} usable samples in the last {self.cfg.calibration_window_h:g}"
                                   f" h, {self.cfg.min_window_samples} needed")
         with self._lock:
+            reset = self.cstate.forecast.reset_s
+            if reset is not None and len(window):        # no window reaches back across a CIP
+                window = window[window["ts"].to_numpy(dtype=float) >= reset]
+                if len(window) < self.cfg.min_window_samples:
+                    return Advice(t_end, skipped=True,
+                                  message=f"{len(window)} usable samples since the last CIP, "
+                                          f"{self.cfg.min_window_samples} needed")
             res = self.chain.window(window, self.cstate)
+            if "cip" in res.detail:
+                self.cip_text = list(res.detail["cip"]["text"])
         detail = self._detail(res)
         if not res.calibration_ok:
             return self._record(Advice(t_end, calibration_ok=False, optimization_ok=False,
@@ -345,7 +400,7 @@ class ModelAdvisor:
         """The window's figures for the advice table (JSON; no model objects)."""
         row = {k: v for k, v in res.row().items() if isinstance(v, (int, float, str, bool))}
         d = {"window": row}
-        for k in ("calibration", "advice"):
+        for k in ("calibration", "advice", "cip"):
             if k in res.detail:
                 d[k] = res.detail[k]
         return d

@@ -38,7 +38,7 @@ def test_default_config_loads():
     assert cfg.plc.host == "127.0.0.1" and cfg.plc.port == 5020 and cfg.plc.device_id == 1
     adv = cfg.advisory
     assert (adv.register, adv.start, adv.size, adv.byte_order) == ("holding", 1000, 64, "ABCD")
-    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 36, 2)) + [48, 49, 50, 52, 54, 56]
+    assert [f.offset for f in adv.fields] == [0, 1] + list(range(2, 46, 2)) + [48, 49, 50, 52, 54, 56]
     assert adv.field("last_update").type == "uint32"
     assert dict(adv.status_bits)[5] == "comm_fault"
     assert cfg.life_counter_tag == "life_counter" and cfg.optimizer == "auto"

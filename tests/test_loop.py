@@ -473,7 +473,13 @@ def test_model_advisor_ingests_calibrates_optimizes_and_restores(plant_minutes, 
         if optimizer == "surrogate":
             assert a.detail["optimization"]["optimizer"] == "surrogate"
         else:    # the chain's advice: uncertainty, confidence and the window's figures
-            assert set(a.values) == ADVICE_FIELDS | {"dCOP_sd_pct", "eta_is_LS_drift", "eta_is_HS_drift"}
+            assert set(a.values) == ADVICE_FIELDS | {"dCOP_sd_pct", "eta_is_LS_drift", "eta_is_HS_drift",
+                                                     "fouling_rate", "R_th_f_forecast", "days_to_cip",
+                                                     "fouling_cost", "fouling_cost_cum"}
+            # one window since the reset: a cost of fouling, but no forecast and no plan yet
+            assert a.values["fouling_cost"] > 0 and a.values["fouling_cost_cum"] > 0
+            assert all(math.isnan(a.values[k]) for k in ("fouling_rate", "R_th_f_forecast", "days_to_cip"))
+            assert a.detail["cip"]["text"][0].startswith("no fouling forecast yet (R_th_f: not enough data")
             assert a.detail["advice"]["p_m_sp_rec_barg"] == a.values["p_m_sp_rec"]
             assert a.low_confidence == (not a.detail["advice"]["confident"])
             assert a.detail["window"]["status"] == "ok"

@@ -9,6 +9,7 @@ inside the command functions.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -69,8 +70,10 @@ def register(sub) -> None:
     rp = sub.add_parser("replay", help="replay a history: calibrations, CIP effects, optimal set points",
                         description="Initial calibration and clean pressure-drop fit on the initial "
                                     "window, CIP detection, and per window the fouling calibration and "
-                                    "the set-point optimization. Writes DIR/windows.csv, DIR/cip.csv, "
-                                    "DIR/summary.txt and the calibration results.")
+                                    "the set-point optimization; the fouling forecast since the last "
+                                    "CIP, the cost of fouling and the cost-optimal CIP (plant.yaml "
+                                    "cip:). Writes DIR/windows.csv, DIR/cip.csv, DIR/forecast.csv, "
+                                    "DIR/samples.csv, DIR/summary.txt and the calibration results.")
     rp.add_argument("history", help="history CSV (canonical columns, timestamp first)")
     _csv_format(rp)
     rp.add_argument("--out", required=True, help="output directory")
@@ -81,6 +84,9 @@ def register(sub) -> None:
     rp.add_argument("--cip-off-minutes", type=float, default=None,
                     help="a plant stop longer than this counts as a CIP (360)")
     rp.add_argument("--no-optimize", action="store_true", help="skip the set-point optimization")
+    rp.add_argument("--forecast-horizon-days", type=float, default=None, metavar="DAYS",
+                    help="R_th,f forecast this far after each window's end, in forecast.csv "
+                         "(plant.yaml cip.horizon_days, 7)")
     rp.add_argument("--hindsight", action="store_true",
                     help="learn the compressor curves on the whole history first (default: causal, "
                          "each window uses only the data up to its end, as the gateway would)")
@@ -431,9 +437,20 @@ def cmd_replay(args) -> int:
                                  SURROGATE_TRACKER, StateError, write_state)
     from model.calibration import CalibrationError
     from model.dpfit import DpFitError
+    from model.analysis.chain import ChainSettings
+    from model.analysis.cip import CipConfigError
     from model.analysis.replay import ReplayError, ReplaySettings, replay
+    from edge.config import find_config
+    from edge.io.prices import PriceFileError, price_for_plant
     try:
         params = _params(args.config)
+        h_days = args.forecast_horizon_days
+        if h_days is not None and not (math.isfinite(h_days) and 0 <= h_days <= 365):
+            raise CommandError(f"--forecast-horizon-days {h_days:g}: expected a number of days in 0..365")
+        try:
+            price = price_for_plant(params.extra, find_config("plant.yaml", args.config))
+        except PriceFileError as exc:
+            raise CommandError(f"key 'cip.electricity_price_csv': {exc}") from None
         h = _read_history(args.history, args)
         hist, skipped, nn = h.frame, h.skipped, h.non_numeric
         _report_reading(args.history, h)
@@ -442,11 +459,19 @@ def cmd_replay(args) -> int:
                                               optimize=False if args.no_optimize else None,
                                               hindsight=True if args.hindsight else None)
         iw = parse_window(args.initial_window) if args.initial_window else None
-        res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"))
+        chain_settings = ChainSettings.from_config(params.extra, cip_price=price, optimize=settings.optimize,
+                                                   min_samples=int(settings.min_samples))
+        if h_days is not None:
+            chain_settings = dataclasses.replace(
+                chain_settings, cip=dataclasses.replace(chain_settings.cip, horizon_days=float(h_days)))
+        if price is not None:
+            _check_price_cover(price, hist)
+        res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"),
+                     chain_settings=chain_settings)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips),
-                            ("samples.csv", res.samples)):
+                            ("forecast.csv", res.forecast), ("samples.csv", res.samples)):
             if frame is None:
                 continue
             tmp = out / f".{name}.tmp"
@@ -476,10 +501,22 @@ def cmd_replay(args) -> int:
             if res.surrogate_tracker is not None:
                 write_state(SURROGATE_TRACKER, res.surrogate_tracker, args.save_state)
     except (CommandError, PlantFileError, ReplayError, CalibrationError, DpFitError, StateError,
-            OSError) as exc:
+            CipConfigError, OSError) as exc:
         return _fail("replay", exc)
     print(text)
-    print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'samples.csv'}, "
-          f"{out / 'summary.txt'}, {out / 'compressors.json'}, {out / 'surrogate_tracker.json'}, "
+    print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'forecast.csv'}, "
+          f"{out / 'samples.csv'}, {out / 'summary.txt'}, {out / 'compressors.json'}, "
+          f"{out / 'surrogate_tracker.json'}, "
           f"{out / 'meta.json'}")
     return 0
+
+
+def _check_price_cover(price, hist) -> None:
+    """A price series must cover the replayed history (else every window's cost would be missing)."""
+    from datetime import datetime, timezone
+    ts = hist["timestamp"]
+    a, b = ts.iloc[0].timestamp(), ts.iloc[-1].timestamp()
+    if a < price.t_s[0] or b > price.end_s:
+        fmt = lambda t: datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%dT%H:%MZ")  # noqa: E731
+        raise CommandError(f"key 'cip.electricity_price_csv': the price series covers {fmt(price.t_s[0])} .. "
+                           f"{fmt(price.end_s)}, the history {fmt(a)} .. {fmt(b)}")

@@ -42,8 +42,9 @@ def register(sub) -> None:
                        description="Benchmarks of every part; prints one JSON document.")
     b.add_argument("--config", default=None, help=PLANT_HELP)
     b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
-                   help="comma-separated sections (model,simulator,analysis,gateway,inputs; "
-                   "also advice and closed_loop, which run longer)")
+                   help="comma-separated sections (model,simulator,analysis,gateway,inputs; also "
+                        "advice, closed_loop, and cip: the CIP policies on 120 simulated days, about "
+                        "15 min; these run longer)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -143,7 +144,8 @@ def cmd_bench(args) -> int:
              "gateway": ("edge.bench_gateway", "bench_gateway"),
              "advice": ("edge.bench_advice", "bench_advice"),
              "inputs": ("edge.bench_inputs", "bench_inputs"),
-             "closed_loop": ("edge.bench_closed_loop", "bench_closed_loop")}
+             "closed_loop": ("edge.bench_closed_loop", "bench_closed_loop"),
+             "cip": ("edge.bench_cip", "bench_cip")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",
@@ -154,13 +156,23 @@ def cmd_bench(args) -> int:
         mod, fn = known[s]
         print(f"hp-edge bench: {s} ...", file=sys.stderr, flush=True)
         func = getattr(importlib.import_module(mod), fn)
-        result[s] = func(params, grid_levels=args.grid_levels) if s == "model" else func()
+        if s == "model":
+            result[s] = func(params, grid_levels=args.grid_levels)
+        elif s == "cip":
+            result[s] = func(params, progress=_day_progress)
+        else:
+            result[s] = func()
     text = json.dumps(result, indent=2, default=float)
     print(text)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text + "\n")
     return 0
+
+
+def _day_progress(day: int, days: int) -> None:
+    if day % 10 == 0:
+        print(f"hp-edge bench: cip: plant day {day} of at most {days}", file=sys.stderr, flush=True)
 
 
 def cmd_fit_compressor(args) -> int:

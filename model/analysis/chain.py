@@ -10,8 +10,10 @@ samples (canonical columns of SPEC §4, time on a ``timestamp`` column or a Date
    are added to the learned curves (causal: nothing after the window's end is used);
 3. the fouling calibration (R_th,f, CF_dp,f) of the fixed model -> the adaptive model;
 4. the papers' window figures: NRMSE of COP and heat output of the fixed and the adaptive model;
-5. the set-point advice with its uncertainty and confidence (``model.analysis.advice``);
-6. the compressor drift against commissioning.
+5. the fouling forecast since the last reset, the cost of fouling and the CIP plan
+   (``model.analysis.cip``, issue 10; ``AnalysisChain.cip`` resets the forecast at a CIP);
+6. the set-point advice with its uncertainty and confidence (``model.analysis.advice``);
+7. the compressor drift against commissioning.
 
 ``ChainState`` carries what one window hands to the next (the fixed model, the learner, the
 previous fouling parameters and recommendation); the gateway persists it in its state directory,
@@ -21,6 +23,7 @@ and ``advisory_values()`` the advisory block's fields in the HMI's units — one
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -34,6 +37,8 @@ from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
 from .advice import AdviceResult, AdviceSettings, advise
+from .cip import CipSettings, ForecastState, explain, forecast_window
+from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
 from .surrogate_tracker import SurrogateTracker, TrackerSettings
 
@@ -53,15 +58,19 @@ class ChainSettings:
     learning: LearningSettings = LearningSettings()
     tracker: TrackerSettings = TrackerSettings()
     use_surrogate: bool = False                 # the tracker's qualified form in place of the search
+    cip: CipSettings = CipSettings()            # issue 10: forecast, cost of fouling, CIP plan
 
     @classmethod
-    def from_config(cls, extra: dict | None, **overrides) -> "ChainSettings":
-        """plant.yaml's ``advice``, ``compressor_learning`` and ``calibration`` sections."""
+    def from_config(cls, extra: dict | None, cip_price: PriceSeries | None = None,
+                    **overrides) -> "ChainSettings":
+        """plant.yaml's ``advice``, ``compressor_learning``, ``calibration`` and ``cip`` sections;
+        ``cip_price``: the series of ``cip.electricity_price_csv`` (``edge.io.prices``)."""
         extra = extra or {}
         learning = LearningSettings.from_dict(extra.get("compressor_learning"))
         kw = dict(advice=AdviceSettings.from_dict(extra.get("advice")), learning=learning,
                   learn_compressors=learning.enabled,
-                  tracker=TrackerSettings.from_dict(extra.get("surrogate_tracker")))
+                  tracker=TrackerSettings.from_dict(extra.get("surrogate_tracker")),
+                  cip=CipSettings.from_config(extra, price=cip_price))
         hb = (extra.get("calibration") or {}).get("heat_balance_limit_pct")
         if hb is not None:
             if isinstance(hb, bool) or not isinstance(hb, (int, float)) or not hb > 0:
@@ -83,6 +92,7 @@ class ChainState:
     cond_factor: float | None = None            # last window's condenser-unit factor
     T_out_sp_C: float | None = None             # the LS speed controller's T_source,out set point
     tracker: SurrogateTracker | None = None     # the surrogate fitted from the window optima
+    forecast: ForecastState = field(default_factory=ForecastState)   # issue 10, since the last reset
 
 
 @dataclass
@@ -141,6 +151,30 @@ class WindowResult:
     drive_factor_LS: float = math.nan
     drive_factor_HS: float = math.nan
     T_c_location: str = ""
+    # ---- issue 10: fouling forecast since the last reset, cost of fouling, CIP plan (model.analysis.cip)
+    days_since_reset: float = math.nan          # the last reset: commissioning (first window) or a CIP's end
+    forecast_at: str = ""                       # window end + horizon
+    R_th_f_forecast_K_per_kW: float = math.nan
+    R_th_f_forecast_lo_K_per_kW: float = math.nan   # prediction band (cip.band_level, 90 %)
+    R_th_f_forecast_hi_K_per_kW: float = math.nan
+    forecast_law: str = ""                      # "kern_seaton" | "linear" | "" (no forecast)
+    fouling_rate_K_per_kW_per_day: float = math.nan
+    R_th_f_limit_in_days: float = math.nan      # until the forecast reaches cip.R_th_f_limit_K_per_kW
+    fouling_cost_eur_per_day: float = math.nan  # against a clean evaporator (compressors, pumps, lost heat)
+    fouling_cost_vs_post_eur_per_day: float = math.nan   # against the level right after the last reset
+    fouling_cost_cum_eur: float = math.nan      # since the last reset
+    fouling_compressor_kW: float = math.nan     # extra compressor electricity at equal heat
+    fouling_pump_kW: float = math.nan           # extra source-pump electricity
+    fouling_lost_heat_kW: float = math.nan      # heat not delivered: LS at its speed limit
+    electricity_price_eur_per_MWh: float = math.nan
+    cip_cost_eur: float = math.nan              # one CIP: direct + heat replaced - electricity saved
+    days_to_recommended_cip: float = math.nan
+    recommended_cip: str = ""
+    cip_interval_opt_days: float = math.nan     # T* of the cost-optimal steady cycle
+    cip_cost_opt_eur_per_day: float = math.nan  # J(T*)
+    cip_saving_eur_per_year: float = math.nan   # against the plant's median (or configured) interval
+    removal_share: float = math.nan             # share of R_th,f a CIP removes (learned or configured)
+    forecast_note: str = ""                     # why a figure is missing
     detail: dict = field(default_factory=dict)  # calibration document etc. (not a CSV column)
 
     @property
@@ -168,6 +202,12 @@ class WindowResult:
                       "dCOP_sd_pct": self.dCOP_opt_sd_pct})
         v.update({"eta_is_LS_drift": self.eta_is_LS_drift_pct,
                   "eta_is_HS_drift": self.eta_is_HS_drift_pct})
+        # issue 10 (NaN = no value yet: not enough windows since the last reset, no plan, ...)
+        v.update({"fouling_rate": self.fouling_rate_K_per_kW_per_day,
+                  "R_th_f_forecast": self.R_th_f_forecast_K_per_kW,
+                  "days_to_cip": self.days_to_recommended_cip,
+                  "fouling_cost": self.fouling_cost_eur_per_day,
+                  "fouling_cost_cum": self.fouling_cost_cum_eur})
         return {k: float(x) for k, x in v.items() if x is not None}
 
 
@@ -187,6 +227,14 @@ def _ratio(num, den) -> float:
     ok = np.isfinite(n) & np.isfinite(d)
     s = d[ok].sum()
     return float(n[ok].sum() / s) if s > 0 else math.nan
+
+
+def _epoch(t) -> float:
+    """Epoch seconds of a number, ISO 8601 text (UTC when naive), datetime or Timestamp."""
+    if isinstance(t, (int, float)) and not isinstance(t, bool):
+        return float(t)
+    ts = pd.Timestamp(t)
+    return float((ts.tz_localize("UTC") if ts.tzinfo is None else ts).timestamp())
 
 
 def _times(data: pd.DataFrame) -> pd.DatetimeIndex:
@@ -288,6 +336,17 @@ class AnalysisChain:
         """After a CIP or a long stop: the change penalty does not reach across it."""
         state.fouling_previous = None
 
+    def cip(self, state: ChainState, start, end, detected_by: str = "cip") -> bool:
+        """A CIP from ``start`` to ``end`` (epoch s, ISO text or Timestamps) ended: what it removed
+        is remembered (the removal share, the interval, the ending cycle's law for the next fits),
+        the forecast and the cumulated cost restart at ``end``, and a new segment begins. Replay
+        calls it at each detected CIP, the gateway when it sees one. False (nothing changes) for a
+        CIP that ended at or before the last reset."""
+        if state.forecast.cip(_epoch(start), _epoch(end), detected_by, self.s.cip):
+            self.new_segment(state)
+            return True
+        return False
+
     # ---------------------------------------------------------------------------- window
     def window(self, data: pd.DataFrame, state: ChainState) -> WindowResult:
         """Analyse one window of usable samples; updates ``state`` (learner, previous values)."""
@@ -378,25 +437,29 @@ class AnalysisChain:
                     setattr(res, f"eta_is_{st}_resid", float(np.mean(e[ok] - curve)))
                     setattr(res, f"eta_is_{st}_drift_pct",
                             learner.drift_pct(st, float(np.median(pi[ok])), float(np.median(nn[ok]))))
+        # the LS speed controller's set point: T_source,out where the LS is not at its limit.
+        # Where it is (T_source,out floating above the set point), the advice and the cost of
+        # fouling start from the set point, so that a set point giving the LS more capacity can
+        # bring T_source,out down, and a cleaner evaporator shows the heat fouling cost
+        adv_in = der
+        n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
+            if "N_LS" in data.columns else np.full(len(der), np.nan)
+        n_max = base.comp_LS.N_max
+        free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)
+        if free.sum() >= 10:
+            state.T_out_sp_C = float(np.median(der["T_source_out"].to_numpy(dtype=float)[free]))
+        res.T_source_out_sp_C = state.T_out_sp_C if state.T_out_sp_C is not None else math.nan
+        sat = np.isfinite(n_ls) & (n_ls >= n_max - LS_SATURATED_RPM)
+        res.ls_saturated_share = float(sat.mean())
+        if sat.any() and state.T_out_sp_C is not None:
+            adv_in = der.copy()
+            t_out = adv_in["T_source_out"].to_numpy(dtype=float)
+            adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, state.T_out_sp_C), t_out)
+        # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
+        if self.s.cip.enabled:
+            self._forecast(res, adv_in, der, fixed, adaptive, state)
         # ---- advice
         if self.s.optimize:
-            # the LS speed controller's set point: T_source,out where the LS is not at its limit.
-            # Where it is (T_source,out floating above the set point), the advice starts from the
-            # set point, so that a set point giving the LS more capacity can bring T_source,out down
-            adv_in = der
-            n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
-                if "N_LS" in data.columns else np.full(len(der), np.nan)
-            n_max = base.comp_LS.N_max
-            free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)
-            if free.sum() >= 10:
-                state.T_out_sp_C = float(np.median(der["T_source_out"].to_numpy(dtype=float)[free]))
-            res.T_source_out_sp_C = state.T_out_sp_C if state.T_out_sp_C is not None else math.nan
-            sat = np.isfinite(n_ls) & (n_ls >= n_max - LS_SATURATED_RPM)
-            res.ls_saturated_share = float(sat.mean())
-            if sat.any() and state.T_out_sp_C is not None:
-                adv_in = der.copy()
-                t_out = adv_in["T_source_out"].to_numpy(dtype=float)
-                adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, state.T_out_sp_C), t_out)
             measured = None
             if obs is not None:
                 measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
@@ -436,6 +499,52 @@ class AnalysisChain:
         data = data.iloc[keep].reset_index(drop=True)
         n = self.s.advice.representative_points
         return representative(data, n, groups(data, n))
+
+    # ---- issue 10 ------------------------------------------------------------------------------
+    def _forecast(self, res: WindowResult, cost_in: pd.DataFrame, der: pd.DataFrame,
+                  fixed: PlantParams, adaptive: PlantParams, state: ChainState) -> None:
+        """The adaptive model at R_th,f levels (0, the window's, the level after the last reset, and
+        cip.cost_levels_per_window of cip.cost_levels_K_per_kW in turn: the plan's cost curve is
+        their mean over cip.cost_average_hours) on ``cip.cost_points`` representative operating
+        points of the window, the
+        LS saturating as the plant's does (heat lost at its speed limit is part of the cost), then
+        ``cip.forecast_window``: the estimates join the forecast since the last reset, the window
+        is priced, the cost cumulated and the CIP planned."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        c = self.s.cip
+        fs = state.forecast
+        R = res.R_th_f_K_per_kW
+        levels = sorted({0.0, *fs.levels_now(c),
+                         *(x for x in (R, fs.R_post) if x is not None and math.isfinite(x) and x >= 0)})
+        rows, w = representative(cost_in, c.cost_points)
+        cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
+        frames = [simulate_batch(rows, adaptive.replace(R_th_f=lv * 1e-3), columns=cols, ls_mode="float")
+                  for lv in levels]
+        keep = np.logical_and.reduce([solved_mask(f) for f in frames])
+        runs, note = None, ""
+        if keep.any():
+            ww = w[keep] / w[keep].sum()
+            sums = [[float(np.sum(ww * f[k].to_numpy(dtype=float)[keep])) for f in frames] for k in cols]
+            try:
+                runs = LevelRuns(np.array(levels), *sums)
+            except CostError as exc:
+                note = str(exc)
+        V = der["V_source"].to_numpy(dtype=float)
+        wf = forecast_window(fs, c, start_s=_epoch(res.window_start), end_s=res.t_end, R=R,
+                             R_se=res.R_th_f_se_K_per_kW, CF=res.CF_dp_f, CF_se=res.CF_dp_f_se, runs=runs,
+                             V_source_m3_per_h=float(np.nanmean(V)),
+                             dp_clean_bar=float(np.nanmean(fixed.dp_clean(V * M3H)) / BAR))
+        if note:
+            wf.notes.append(f"cost of fouling: {note}")
+        for k, v in wf.fields().items():
+            setattr(res, k, v)
+        res.detail["cip"] = {"text": explain(wf, c), "levels_K_per_kW": levels,
+                             "runs": None if runs is None else {"Q_sink_kW": list(runs.Q_sink_kW),
+                                                                 "W_kW": list(runs.W_kW),
+                                                                 "Q_source_kW": list(runs.Q_source_kW)},
+                             "rows_solved": int(keep.sum()), "rows": int(len(keep)),
+                             "seconds": time.perf_counter() - t0, "cpu_seconds": time.thread_time() - c0}
+        res.detail["cost_rows"] = rows.iloc[np.flatnonzero(keep)], w[keep]
 
     def _fouling_figures(self, res: WindowResult, fc: CalibrationResult, fixed: PlantParams,
                          adaptive: PlantParams, der: pd.DataFrame) -> None:

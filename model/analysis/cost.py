@@ -253,6 +253,89 @@ def compressor_cost_curve(R_K_per_kW, COP, Q_sink_kW: float, price_eur_per_MWh: 
     return CostCurve(R, cost_rate_eur_per_day(P, price_eur_per_MWh))
 
 
+# ---- the analysis chain's cost of fouling: model runs at several levels, lost capacity included ----
+@dataclass(frozen=True, eq=False)
+class LevelRuns:
+    """The adaptive model run on one window's operation at several R_th,f levels (the LS speed
+    controller saturating as the plant's does, ``simulate_batch(..., ls_mode="float")``): period
+    means over the same rows of the heat delivered, the compressors' power and the heat taken from
+    the source [kW], per level [K/kW]. R = 0 (a clean evaporator) must be among the levels."""
+    R_K_per_kW: np.ndarray
+    Q_sink_kW: np.ndarray
+    W_kW: np.ndarray
+    Q_source_kW: np.ndarray
+
+    def __post_init__(self):
+        arrs = [np.asarray(getattr(self, k), dtype=float).ravel()
+                for k in ("R_K_per_kW", "Q_sink_kW", "W_kW", "Q_source_kW")]
+        if len({len(a) for a in arrs}) != 1 or len(arrs[0]) < 2:
+            raise CostError(f"level runs need >= 2 levels of equal length, got {[len(a) for a in arrs]}")
+        if not all(np.all(np.isfinite(a)) for a in arrs):
+            raise CostError("level runs must be finite")
+        R, Q, W, Qs = arrs
+        if not (np.all(W > 0) and np.all(Qs > 0) and np.all(Q > W)):
+            raise CostError("level runs need Q_sink > W > 0 and Q_source > 0 at every level")
+        order = np.argsort(R)
+        R, Q, W, Qs = (a[order] for a in (R, Q, W, Qs))
+        if np.any(np.diff(R) <= 0):
+            raise CostError("level runs: levels must differ")
+        if R[0] != 0.0:
+            raise CostError("level runs: R = 0 (a clean evaporator) must be among the levels")
+        for k, a in zip(("R_K_per_kW", "Q_sink_kW", "W_kW", "Q_source_kW"), (R, Q, W, Qs)):
+            object.__setattr__(self, k, a)
+
+    def at(self, R_K_per_kW):
+        """(Q_sink, W, Q_source) [kW] at a level (or an array of levels), linearly interpolated
+        (extrapolated beyond the outer levels)."""
+        x = self.R_K_per_kW
+        y = np.stack([self.Q_sink_kW, self.W_kW, self.Q_source_kW])          # (3, n)
+        R = np.asarray(R_K_per_kW, dtype=float)
+        i = np.clip(np.searchsorted(x, R, side="right") - 1, 0, len(x) - 2)
+        u = (R - x[i]) / (x[i + 1] - x[i])
+        out = y[:, i] + (y[:, i + 1] - y[:, i]) * u
+        return tuple(float(v) for v in out) if R.ndim == 0 else tuple(out)
+
+
+def fouling_cost_terms(fouled, reference, price_eur_per_MWh: float,
+                       replacement_heat_eur_per_MWh: float) -> dict:
+    """Cost of operating at the fouled level against the reference level, at equal heat.
+
+    fouled, reference : (Q_sink, W, Q_source) [kW] of the same operation (``LevelRuns.at``); the
+        fouled values may be arrays (one cost per level)
+    Compressors: the electricity the fouled plant needs for the heat it delivers beyond what the
+        reference plant needs for that heat, P_comp = Q_f (1/COP_f - 1/COP_r) = W_f - Q_f W_r/Q_r.
+    Lost capacity: where fouling drives the LS compressor to its speed limit, T_source,out floats
+        and the plant takes less heat from the source; the reference plant would have made
+        L = (Qs_r - Qs_f) * COP_r/(COP_r - 1) = (Qs_r - Qs_f) * Q_r/Qs_r more heat of it, which is
+        bought at the replacement heat price instead of made at the electricity price / COP_r:
+        it costs L * max(p_heat - p/COP_r, 0) (nothing when bought heat is cheaper).
+    Returns P_compressor_kW, lost_heat_kW, cost_eur_per_day (both parts, 24 h/day).
+    """
+    Qf, Wf, Qsf = (np.asarray(v, dtype=float) for v in fouled)
+    Qr, Wr, Qsr = (float(v) for v in reference)
+    if not (Qr > Wr > 0 and Qsr > 0 and np.all(Qf > 0)):
+        raise CostError(f"reference run must have Q_sink > W > 0, got {reference!r}")
+    p = float(price_eur_per_MWh)
+    ph = float(replacement_heat_eur_per_MWh)
+    if not (math.isfinite(p) and math.isfinite(ph) and ph >= 0):
+        raise CostError(f"prices must be finite (heat >= 0), got {p!r}, {ph!r}")
+    P = Wf - Qf * Wr / Qr
+    L = np.maximum(Qsr - Qsf, 0.0) * Qr / Qsr
+    cost = HOURS_PER_DAY / 1e3 * (p * P + L * max(ph - p * Wr / Qr, 0.0))
+    if P.ndim:
+        return {"P_compressor_kW": P, "lost_heat_kW": L, "cost_eur_per_day": cost}
+    return {"P_compressor_kW": float(P), "lost_heat_kW": float(L), "cost_eur_per_day": float(cost)}
+
+
+def fouling_cost_curve(runs: LevelRuns, price_eur_per_MWh: float,
+                       replacement_heat_eur_per_MWh: float) -> CostCurve:
+    """f(R_th,f) [EUR/day] against a clean evaporator (``fouling_cost_terms`` at each level;
+    linear between them): the compressor part and lost capacity, not the pumps."""
+    f = fouling_cost_terms((runs.Q_sink_kW, runs.W_kW, runs.Q_source_kW), runs.at(0.0), price_eur_per_MWh,
+                           replacement_heat_eur_per_MWh)["cost_eur_per_day"]
+    return CostCurve(runs.R_K_per_kW, np.atleast_1d(f))
+
+
 def pump_cost_curve(dp_clean_bar: float, V_source_m3_per_h: float, price_eur_per_MWh: float,
                     eta_pump: float = DEFAULT_ETA_PUMP) -> CostCurve:
     """Cost rate of the source pump's extra electricity as a function of CF_dp,f (linear, 0 at 1)."""
@@ -470,6 +553,7 @@ class CipPlan:
     J_current_eur_per_day: float | None = None
     saving_eur_per_year: float | None = None   # (J(T_current) - J(T*)) * 365.25
     notes: tuple = field(default_factory=tuple)
+    pays: bool = True                   # False: J still falls at the searched range's end (never clean)
 
     @property
     def overdue(self) -> bool:
@@ -578,7 +662,7 @@ def plan_cip(components: Sequence[FoulingComponent], *, cip_cost_eur: float, dow
         Jc = float(J(Tc)[0])
         saving = (Jc - J_opt) * DAYS_PER_YEAR
     return CipPlan(T_opt, J_opt, f_end, now, t_cip, max(0.0, t_cip - now), trigger, interior, starts, ends,
-                   Tc, Jc, saving, tuple(notes))
+                   Tc, Jc, saving, tuple(notes), pays=i < n_grid - 1)
 
 
 def median_interval_days(reset_days: Sequence[float], cip_start_days: Sequence[float]) -> float | None:

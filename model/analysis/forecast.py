@@ -41,7 +41,9 @@ estimates, or a span (last t - first t) shorter than ``min_span_days`` (1 day: s
 the daily cycle of the operation, not the fouling trend).
 
 Uncertainty. Cov = s^2 * (J^T W J)^-1 from the Jacobian J of the chosen law at the optimum,
-multiplied by ``overlap`` when consecutive estimates share data. With g(t) the gradient of y(t) with
+multiplied by ``overlap`` when consecutive estimates share data, or by (1 + rho)/(1 - rho) when the
+residuals' lag-1 autocorrelation rho is larger than chance (2/sqrt(n)) and that is more: estimates
+whose errors follow the daily operation are not independent (``fit_fouling``). With g(t) the gradient of y(t) with
 respect to the parameters and q the (1 + level)/2 quantile of Student's t with n - p degrees of
 freedom (divided by ``overlap``):
 
@@ -89,6 +91,7 @@ class FitSettings:
     max_rel_se_k: float = 0.5
     max_tau_span_ratio: float = 10.0
     se_floor_share: float = 0.25
+    autocorrelation: bool = True       # widen for serially correlated residuals (module docstring)
 
     def __post_init__(self):
         checks = (("min_windows", self.min_windows >= 3), ("min_span_days", self.min_span_days > 0),
@@ -294,6 +297,37 @@ class FoulingFit:
                 "n": self.n, "t_first_days": self.t_first, "t_last_days": self.t_last, "s2": self.s2,
                 "reason": self.reason, "p_curvature": num(self.p_curvature)}
 
+    def to_state(self) -> dict:
+        """Everything needed to rebuild the fit (``from_state``), as plain JSON numbers; the
+        analysis chain keeps the earlier cycles' fits in its state file (for ``law_prior``)."""
+        cov = np.asarray(self.cov, dtype=float)
+        return {"law": self.law, "floor": self.floor, "a0": self.a0, "r0": self.r0, "k": self.k,
+                "cov": [[float(x) if math.isfinite(x) else None for x in row] for row in cov],
+                "s2": self.s2, "se_typ": self.se_typ, "n": self.n, "dof": self.dof,
+                "t_first": self.t_first, "t_last": self.t_last, "reason": self.reason,
+                "p_curvature": self.p_curvature if math.isfinite(self.p_curvature) else None,
+                "n_dropped": self.n_dropped, "overlap": self.overlap}
+
+    @classmethod
+    def from_state(cls, d: dict) -> "FoulingFit":
+        """The fit of ``to_state``; ForecastError when the document is not one."""
+        try:
+            law = d["law"]
+            if law not in LAWS:
+                raise ValueError(f"law {law!r}")
+            cov = np.array([[math.inf if x is None else float(x) for x in row] for row in d["cov"]])
+            p = 3 if law == "kern_seaton" else 2
+            if cov.shape != (p, p):
+                raise ValueError(f"covariance of shape {cov.shape} for the {law} law")
+            pc = d.get("p_curvature")
+            return cls(law, float(d["floor"]), float(d["a0"]), float(d["r0"]), float(d["k"]), cov,
+                       float(d["s2"]), float(d["se_typ"]), int(d["n"]), float(d["dof"]),
+                       float(d["t_first"]), float(d["t_last"]), str(d.get("reason", "")),
+                       math.nan if pc is None else float(pc), int(d.get("n_dropped", 0)),
+                       float(d.get("overlap", 1.0)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ForecastError(f"not a fouling fit: {exc}") from None
+
     def summary(self, unit: str = "", scale: float = 1.0, scale_label: str = "") -> str:
         se = self.std_errors()
         f = (lambda v: f"{v * scale:.4g}{scale_label}")
@@ -416,6 +450,38 @@ def _profile(t, yc, sw, k_hi, objective, grid_objective):
 
 def fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, overlap: float = 1.0,
                 prior: LawPrior | None = None, settings: FitSettings | None = None) -> FoulingFit:
+    """Fit the fouling law to the window estimates since the last reset (``_fit_fouling``), then
+    look at the residuals in time order: where they are serially correlated beyond chance (lag-1
+    autocorrelation rho > 2/sqrt(n); a daily pattern in the estimates, or windows sharing data),
+    the n estimates carry the information of about n (1 - rho)/(1 + rho) independent ones, and the
+    fit is redone with overlap = (1 + rho)/(1 - rho) (at most n/4) when that is larger than the
+    given one: wider bands and a law choice that needs more evidence (``FitSettings.autocorrelation``)."""
+    s = settings or FitSettings()
+    fit = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=overlap, prior=prior, settings=s)
+    if not s.autocorrelation:
+        return fit
+    t = np.asarray(t_days, dtype=float).ravel()
+    yy = np.asarray(y, dtype=float).ravel()
+    keep = np.isfinite(t) & np.isfinite(yy)
+    order = np.argsort(t[keep], kind="stable")
+    e = (yy[keep] - fit.value(t[keep]))[order]
+    e = e - e.mean()
+    n = len(e)
+    den = float(np.sum(e * e))
+    rho = float(np.sum(e[1:] * e[:-1]) / den) if den > 0 and n > 3 else 0.0
+    fit.extra["residual_rho"] = rho
+    if not rho > 2.0 / math.sqrt(n):
+        return fit
+    eff = min((1.0 + rho) / max(1.0 - rho, 1e-6), n / 4.0)
+    if eff <= overlap:
+        return fit
+    out = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=eff, prior=prior, settings=s)
+    out.extra["residual_rho"] = rho
+    return out
+
+
+def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, overlap: float = 1.0,
+                 prior: LawPrior | None = None, settings: FitSettings | None = None) -> FoulingFit:
     """Fit the fouling law to the window estimates since the last reset.
 
     t_days : days since the last reset (commissioning or a CIP's end) of each estimate [day], >= 0

@@ -16,7 +16,9 @@ history first.
    windows of about ``window_hours``, so windows never straddle a CIP and the windows next to one
    touch it): ``AnalysisChain.window`` — fouling calibration -> the **adaptive model**, the window
    figures, the learned curves and the advice;
-5. per CIP: R_th,f and CF_dp,f of the windows just before and just after, and the removed share.
+5. per CIP: R_th,f and CF_dp,f of the windows just before and just after, and the removed share;
+   and (issue 10) ``AnalysisChain.cip`` at its end: the fouling forecast and the cumulated cost of
+   fouling restart there (forecast.csv: one row per window, the forecast made at its end).
 """
 from __future__ import annotations
 
@@ -37,6 +39,10 @@ from .compressors import STAGES, observe
 WINDOW_COLUMNS = ROW_COLUMNS
 CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before_K_per_kW",
                "R_th_f_after_K_per_kW", "R_th_f_removed_pct", "CF_dp_f_before", "CF_dp_f_after")
+# issue 10: DIR/forecast.csv, one row per window (the forecast made at the window's end)
+FORECAST_COLUMNS = ("window_end", "forecast_at", "R_th_f_forecast_K_per_kW", "R_th_f_forecast_lo_K_per_kW",
+                    "R_th_f_forecast_hi_K_per_kW", "fouling_rate_K_per_kW_per_day",
+                    "fouling_cost_eur_per_day", "days_to_recommended_cip")
 SAMPLE_COLUMNS = ("timestamp", "usable", "reason", "window_start", "COP_measured", "COP_fixed",
                   "COP_adaptive", "Q_sink_kW_measured", "Q_sink_kW_fixed", "Q_sink_kW_adaptive",
                   "p_e_bar_measured", "eta_is_LS_meas", "eta_is_HS_meas", "eta_is_LS_model",
@@ -109,6 +115,15 @@ class ReplayResult:
     compressors: dict | None = None       # the learner's state at the end (compressors.json)
     surrogate_tracker: dict | None = None  # the tracker's rows and fits at the end
     meta: dict = field(default_factory=dict)
+    when_to_clean: list[str] = field(default_factory=list)   # issue 10: the last window's CIP advice
+
+    @property
+    def forecast(self) -> pd.DataFrame:
+        """forecast.csv: FORECAST_COLUMNS, one row per window (NaN where there is no forecast)."""
+        w = self.windows
+        if not len(w):
+            return pd.DataFrame(columns=list(FORECAST_COLUMNS))
+        return w[list(FORECAST_COLUMNS)].copy()
 
     def summary(self) -> str:
         w = self.windows
@@ -180,6 +195,9 @@ class ReplayResult:
                          f"{c['CF_dp_f_after']:.3f}")
         else:
             L.append("CIPs: none detected")
+        if self.when_to_clean:
+            L.append("When to clean (forecast since the last reset, cost of fouling, cost-optimal CIP):")
+            L += ["  " + x for x in self.when_to_clean]
         for n in self.notes:
             L.append(f"note: {n}")
         return "\n".join(L)
@@ -294,13 +312,20 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     plan, skipped, cips = plan_windows(ts, processed, history, init_idx, s, notes)
     rows: list[dict] = []
     sample_parts: list[pd.DataFrame] = []
+    when: list[str] = []
+    pending = sorted(cips, key=lambda c: c["end"])       # issue 10: CIPs reset the forecast
     if progress is not None:
         progress(0, len(plan))
     for n_done, (m, new_seg) in enumerate(plan, start=1):
         if new_seg:
             chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
         data = history.loc[m].assign(timestamp=ts[m])
+        while pending and pending[0]["end"] <= data["timestamp"].iloc[0]:
+            c_ = pending.pop(0)
+            chain.cip(state, c_["start"], c_["end"], c_["detected_by"])
         res = chain.window(data, state)
+        if res.ok and "cip" in res.detail:
+            when = res.detail["cip"]["text"]
         if not res.ok:
             key = res.status.split(":")[0] + ": " + res.status.split(":")[1].strip() if ":" in res.status \
                 else res.status
@@ -323,7 +348,8 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
         unusable=usable_counts(processed), windows_skipped=skipped, initial_window=iw,
         run_time_s=time.perf_counter() - t0, settings=s, last_fouling=state.last_fouling, notes=notes,
         samples=samples, compressors=state.learner.to_dict() if state.learner is not None else None,
-        surrogate_tracker=state.tracker.to_dict() if state.tracker is not None else None, meta=meta)
+        surrogate_tracker=state.tracker.to_dict() if state.tracker is not None else None, meta=meta,
+        when_to_clean=when)
 
 
 def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.DataFrame,

@@ -18,6 +18,7 @@ import os
 import re
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 from pathlib import Path
 
 from edge.advisory import NAME_PATTERN as _NAME

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import pandas as pd
 
-from ..calibration import CalibrationError, CalibrationResult, calibrate, calibration_frame, spec_from_config
+from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_from_config
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import process, usable_counts
 from ..params import PlantParams

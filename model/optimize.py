@@ -44,9 +44,9 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from .batch import INPUT_COLUMNS, simulate_batch
+from .batch import INPUT_COLUMNS, frame_of, simulate_batch, solve_rows
 from .params import PlantParams
-from .units import Pa_to_barg
+from .units import BAR, Pa_to_barg
 
 COARSE_STEP = 0.5         # bar, coarse scan resolution
 XTOL = 0.01               # bar, Brent tolerance on the set point
@@ -54,6 +54,8 @@ SUBSAMPLE = 12            # rows used by the coarse scan
 BOUND_MARGIN = 0.05       # bar, kept clear of p_e and p_c
 PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
 SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
+GUESS_BAR = 1.0           # bar: a row's own solution this close in set point is its warm start
+PLATEAU_REUSE_BAR = 0.01  # bar: below a row's floating p_m by this, its plateau solution is reused
 COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP",
            "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C")
 
@@ -149,16 +151,43 @@ def representative(data: pd.DataFrame, k: int,
 
 
 class Evaluator:
-    """Simulates evaluation rows at a set point (one value for all rows), with a cache."""
+    """Simulates evaluation rows at a set point (one value for all rows), with a cache.
+
+    Every row remembers its solutions: a row is warm-started from its own solution at the nearest
+    set point already evaluated (within ``GUESS_BAR``; the Brent steps and the uncertainty draws
+    then converge in one or two flowsheet evaluations), else from the previous row's. On the
+    HS-speed plateau the solution does not depend on the set point (the HS runs flat out and p_m
+    floats above it), so a row that ran there at one set point answers every lower set point without
+    a solve. ``guess_from``: another Evaluator on the same rows (other parameters, e.g. an
+    uncertainty draw) whose solutions are warm starts too. The results depend on the order of the
+    calls only within the solver's tolerances, and a given sequence of calls always gives the same
+    numbers."""
 
     def __init__(self, rows: pd.DataFrame, weights: np.ndarray, params: PlantParams,
-                 ls_mode: str = "float") -> None:
+                 ls_mode: str = "float", guess_from: "Evaluator | None" = None) -> None:
         self.rows = rows.reset_index(drop=True)
         self.w = np.asarray(weights, dtype=float)
         self.params = params
         self.ls_mode = ls_mode
         self.evals = 0
+        self.solves = 0
         self._cache: dict[float | None, Point] = {}
+        self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
+        self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
+        self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
+        self._other = guess_from if guess_from is not None and len(guess_from.rows) == len(self.rows) \
+            else None
+
+    def _nearest(self, i: int, sp: float):
+        for mem in (self._mem[i], self._other._mem[i] if self._other is not None else ()):
+            best, dist = None, GUESS_BAR
+            for x, row in mem:
+                d = abs(x - sp)
+                if d <= dist:
+                    best, dist = row, d
+            if best is not None:
+                return best[2]
+        return None
 
     def at(self, sp: float | None, rows: np.ndarray | None = None) -> Point:
         """Figures at set point ``sp`` [bar(g)] (None: each row's own p_m_sp). ``rows`` picks a
@@ -167,9 +196,34 @@ class Evaluator:
         if rows is None and key in self._cache:
             return self._cache[key]
         self.evals += 1
-        d = self.rows if rows is None else self.rows.iloc[rows]
-        w = self.w if rows is None else self.w[rows]
-        f = simulate_batch(d, self.params, p_m_sp=sp, columns=COLUMNS, ls_mode=self.ls_mode)
+        idx = np.arange(len(self.rows)) if rows is None else np.asarray(rows, dtype=int)
+        w = self.w if rows is None else self.w[idx]
+        sps = self._own_sp[idx] if sp is None else np.full(len(idx), float(sp))
+        amb = self.params.ambient_pressure / BAR
+        out: list = [None] * len(idx)
+        todo = []
+        for j, (i, x) in enumerate(zip(idx, sps)):
+            pl = self._plateau[i]
+            if pl is not None and x <= pl[0] - PLATEAU_REUSE_BAR:
+                out[j] = pl[1]
+            else:
+                todo.append(j)
+        if todo:
+            sel = idx[todo]
+            solved = solve_rows(self.rows.iloc[sel], self.params, p_m_sp=sps[todo], ls_mode=self.ls_mode,
+                                guesses=[self._nearest(i, x) for i, x in zip(sel, sps[todo])])
+            self.solves += len(todo)
+            for j, i, x, r in zip(todo, sel, sps[todo], solved):
+                out[j] = r
+                res = r[2]
+                if res is None:
+                    continue
+                self._mem[i].append((float(x), r))
+                if res.branch == "hs_max" and r[0] in SOLVED:
+                    p_float = float(Pa_to_barg(res.p_m, amb))
+                    if self._plateau[i] is None:
+                        self._plateau[i] = (p_float, r)
+        f = frame_of(out, self.params, COLUMNS, self.rows.index[idx])
         p = _point(sp, f, w)
         if rows is None:
             self._cache[key] = p

@@ -234,7 +234,7 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
             if R_th_f_se_K_per_kW and math.isfinite(R_th_f_se_K_per_kW):
                 par = par.replace(R_th_f=max(0.0, par.R_th_f + 1e-3 * R_th_f_se_K_per_kW
                                              * float(rng.standard_normal())))
-            e = Evaluator(rows, w, par)
+            e = Evaluator(rows, w, par, guess_from=ev)
             a, b = e.at(sp_rec), e.at(None)
             if a.ok and b.ok:
                 vals.append(100.0 * (a.COP / b.COP - 1.0))

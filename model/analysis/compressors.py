@@ -453,18 +453,22 @@ class LocalCurves:
         w_all = np.exp(-0.5 * (((nodes[:, None, :] - centres[None, :, :]) / h) ** 2).sum(axis=2))
         w_all[w_all < 1e-4] = 0.0
         G = global_A / max(np.trace(global_A) / 6.0, 1e-300)      # normalised global precision
-        for k in np.flatnonzero(near):
-            w = w_all[k]
-            A = np.tensordot(w, As, axes=1)
-            if np.trace(A) <= 0:
-                continue
+        # all nodes at once: the weighted bin statistics (k, 6, 6) and (k, 6), then one batched solve
+        k_near = np.flatnonzero(near)
+        if len(k_near):
+            w = w_all[k_near]
+            A = (w @ As.reshape(len(As), 36)).reshape(-1, 6, 6)
+            fitted = np.trace(A, axis1=1, axis2=2) > 0
             mu = s.local_prior_weight
             A_tot = A + mu * G
-            b_tot = np.tensordot(w, bs, axes=1) + mu * G @ global_coef
-            try:
-                coef[k] = np.linalg.solve(A_tot, b_tot)
-            except np.linalg.LinAlgError:
-                continue
+            b_tot = w @ bs + mu * (G @ global_coef)
+            for k, ok_k, Ak, bk in zip(k_near, fitted, A_tot, b_tot):
+                if not ok_k:
+                    continue
+                try:
+                    coef[k] = np.linalg.solve(Ak, bk)
+                except np.linalg.LinAlgError:
+                    continue
         self.coef = coef.reshape(npi, nn, 6)
         self.valid = np.isfinite(self.coef).all(axis=2)
         # the outermost ring of nodes answers with the global curve, so that the blend meets the
@@ -474,26 +478,67 @@ class LocalCurves:
         self.global_coef = global_coef
         self.ok = bool(self.valid.any())
 
-    def value(self, pi: float, n: float) -> float | None:
-        """The local curve at (pi, n), None outside the grid's valid nodes."""
+    def _fast(self) -> None:
+        """Nested lists of every node's coefficients (the global curve where a node has no local
+        fit): the curves are evaluated millions of times per replay, in plain floats."""
+        c = np.where(self.valid[:, :, None], self.coef, np.asarray(self.global_coef)[None, None, :])
+        self._c = c.tolist()
+        self._ni, self._nj = c.shape[0] - 1, c.shape[1] - 1
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d.pop("_c", None)       # rebuilt on first use (keeps pickles small)
+        return d
+
+    def _cell(self, pi: float, n: float, left: bool = False):
+        """(i, j, fx, fy, zp, zn) of (pi, n), None outside the grid. ``left``: on a node line in n,
+        take the cell below (one-sided derivative from the left)."""
         if not (self.ok and math.isfinite(pi) and math.isfinite(n)):
             return None
+        if "_c" not in self.__dict__:
+            self._fast()
         x = (pi - self.p0) / self.dpi
         y = (n - self.n0) / self.dn
         i, j = int(math.floor(x)), int(math.floor(y))
-        if not (0 <= i < self.coef.shape[0] - 1 and 0 <= j < self.coef.shape[1] - 1):
+        fy = y - j
+        if left and fy == 0.0 and j > 0:
+            j, fy = j - 1, 1.0
+        if not (0 <= i < self._ni and 0 <= j < self._nj):
             return None
-        fx, fy = x - i, y - j
-        zp = (pi - _Z[0]) / _Z[1]
-        zn = (n - _Z[2]) / _Z[3]
-        basis = np.array([1.0, zp, zn, zp * zp, zp * zn, zn * zn])
-        # a node without a local fit contributes the global curve: continuous where the local
-        # region ends
-        c = np.zeros(6)
-        for (a, b), wgt in (((i, j), (1 - fx) * (1 - fy)), ((i + 1, j), fx * (1 - fy)),
-                            ((i, j + 1), (1 - fx) * fy), ((i + 1, j + 1), fx * fy)):
-            c += wgt * (self.coef[a, b] if self.valid[a, b] else self.global_coef)
-        return float(c @ basis)
+        return i, j, x - i, fy, (pi - _Z[0]) / _Z[1], (n - _Z[2]) / _Z[3]
+
+    def value(self, pi: float, n: float) -> float | None:
+        """The local curve at (pi, n), None outside the grid's valid nodes. Between nodes the four
+        surrounding polynomials are blended bilinearly; a node without a local fit contributes the
+        global curve (continuous where the local region ends)."""
+        cell = self._cell(pi, n)
+        if cell is None:
+            return None
+        i, j, fx, fy, zp, zn = cell
+        r0, r1 = self._c[i], self._c[i + 1]
+        pp, pn, nn = zp * zp, zp * zn, zn * zn
+        v = [c[0] + c[1] * zp + c[2] * zn + c[3] * pp + c[4] * pn + c[5] * nn
+             for c in (r0[j], r1[j], r0[j + 1], r1[j + 1])]
+        return ((1 - fy) * ((1 - fx) * v[0] + fx * v[1])) + (fy * ((1 - fx) * v[2] + fx * v[3]))
+
+    def value_dn(self, pi: float, n: float, left: bool = False) -> tuple[float, float] | None:
+        """(value, d value / d n) at (pi, n) (the derivative of the bilinear blend, exact within a
+        cell), None outside the grid."""
+        cell = self._cell(pi, n, left)
+        if cell is None:
+            return None
+        i, j, fx, fy, zp, zn = cell
+        r0, r1 = self._c[i], self._c[i + 1]
+        pp, pn, nn = zp * zp, zp * zn, zn * zn
+        cs = (r0[j], r1[j], r0[j + 1], r1[j + 1])
+        v = [c[0] + c[1] * zp + c[2] * zn + c[3] * pp + c[4] * pn + c[5] * nn for c in cs]
+        dv = [c[2] + c[4] * zp + 2.0 * c[5] * zn for c in cs]
+        lo = (1 - fx) * v[0] + fx * v[1]
+        hi = (1 - fx) * v[2] + fx * v[3]
+        val = (1 - fy) * lo + fy * hi
+        d = (hi - lo) / self.dn + ((1 - fy) * ((1 - fx) * dv[0] + fx * dv[1])
+                                   + fy * ((1 - fx) * dv[2] + fx * dv[3])) / _Z[3]
+        return val, d
 
 
 @dataclass(frozen=True)
@@ -515,30 +560,47 @@ class LearnedCompressor(Compressor):
         v = v if v is not None else Compressor.eta_vol_at(self, pi, n)
         return v + _zvalue(self.delta_vol, pi, n) if self.delta_vol is not None else v
 
+    def _vol_dn(self, pi: float, n: float, left: bool = False) -> tuple[float, float]:
+        """eta_vol and its derivative in n at (pi, n) (``left``: one-sided from below on a node
+        line); the value is exactly ``eta_vol_at``'s."""
+        r = self.local_vol.value_dn(pi, n, left)
+        if r is None:
+            c = self.eta_vol
+            v = Compressor.eta_vol_at(self, pi, n)
+            d = c[2] + c[4] * pi + 2.0 * c[5] * n
+        else:
+            v, d = r
+        a = self.delta_vol
+        if a is not None:
+            zp = (pi - _Z[0]) / _Z[1]
+            zn = (n - _Z[2]) / _Z[3]
+            v = v + _zvalue(a, pi, n)
+            d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
+        return v, d
+
     def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
-        """As Compressor.speed_for_flow (same contract), by Newton with a numerical derivative:
-        phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume), continued linearly beyond the
-        speed bounds."""
+        """As Compressor.speed_for_flow (same contract), by safeguarded Newton with the analytic
+        derivative of the blended curve: phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume),
+        continued linearly beyond the speed bounds (with the one-sided slope inside the range)."""
         if self.local_vol is None or not self.local_vol.ok:
             return Compressor.speed_for_flow(self, m, rho_suc, pi, n0)
         target = m / (rho_suc * self.swept_volume)
         n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
-        eps = 1e-6
 
         def phi(n: float) -> tuple[float, float]:
-            f = self.eta_vol_at(pi, n) * n
-            h = -eps if n >= n_hi else eps       # one-sided inside the speed range
-            return f, (self.eta_vol_at(pi, n + h) * (n + h) - f) / h
+            v, d = self._vol_dn(pi, n, left=n >= n_hi)
+            return v * n, v + n * d
 
-        for edge in (n_lo, n_hi):
-            if phi(edge)[1] <= 0.0:
+        lo_edge, hi_edge = phi(n_lo), phi(n_hi)
+        for edge, (_, slope) in ((n_lo, lo_edge), (n_hi, hi_edge)):
+            if slope <= 0.0:
                 raise ValueError(f"volumetric-efficiency curve gives a flow that does not rise with "
                                  f"speed at pressure ratio {pi:.3f}, n={edge:.3f}")
-        f_hi, d_hi = phi(n_hi)
+        f_hi, d_hi = hi_edge
         if target > f_hi:
             n = n_hi + (target - f_hi) / d_hi
             return n, target / n
-        f_lo, d_lo = phi(n_lo)
+        f_lo, d_lo = lo_edge
         if target < f_lo:
             n = n_lo + (target - f_lo) / d_lo
             if n <= 0.0:

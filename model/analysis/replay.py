@@ -21,7 +21,9 @@ history first.
 from __future__ import annotations
 
 import math
+import pickle
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -31,7 +33,7 @@ from ..calibration import CalibrationError, CalibrationResult, calibrate, calibr
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import process, usable_counts
 from ..params import PlantParams
-from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, ChainState, WindowResult
+from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
 from .compressors import STAGES, observe
 
 WINDOW_COLUMNS = ROW_COLUMNS
@@ -218,13 +220,17 @@ def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
 
 def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings | None = None,
            initial_window: tuple | None = None, processed: pd.DataFrame | None = None,
-           progress=None, chain_settings: ChainSettings | None = None) -> ReplayResult:
+           progress=None, chain_settings: ChainSettings | None = None,
+           executor=None) -> ReplayResult:
     """Replay ``history`` (canonical columns + ``timestamp``) on the plant ``params`` (plant.yaml).
 
     initial_window : (start, end) timestamps; default the first ``initial_minutes`` usable minutes.
     processed : the output of ``model.measured.process`` when the caller already has it.
     progress : callable(done, total) called once per window.
     chain_settings : default from plant.yaml (advice, compressor_learning).
+    executor : anything with concurrent.futures' ``submit`` (a ProcessPoolExecutor, a Dask
+        ``distributed.Client``): the windows' expensive analysis runs there (``run_windows``); the
+        results are identical to the sequential replay (None: in this process, window by window).
     """
     t0 = time.perf_counter()
     s = settings or ReplaySettings.from_config(params.extra)
@@ -282,17 +288,23 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     sample_parts: list[pd.DataFrame] = []
     if progress is not None:
         progress(0, len(plan))
-    for n_done, (m, new_seg) in enumerate(plan, start=1):
-        if new_seg:
-            chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
-        data = history.loc[m].assign(timestamp=ts[m])
-        res = chain.window(data, state)
+
+    def tasks():
+        """Pass 1, in window order: each window's task (the learner updated, and so on)."""
+        for m, new_seg in plan:
+            if new_seg:
+                chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
+            yield chain.prepare(history.loc[m].assign(timestamp=ts[m]), state, samples=True)
+
+    for n_done, partial in enumerate(run_windows(chain, tasks(), executor), start=1):
+        res = chain.finish(partial, state)          # pass 3, in window order: the dead band
         if not res.ok:
             key = res.status.split(":")[0] + ": " + res.status.split(":")[1].strip() if ":" in res.status \
                 else res.status
             skipped[key] = skipped.get(key, 0) + 1
         rows.append(res.row())
-        sample_parts.append(_window_samples(data, res, state))
+        if partial.samples is not None:
+            sample_parts.append(partial.samples)
         if progress is not None:
             progress(n_done, len(plan))
     windows = pd.DataFrame(rows, columns=list(WINDOW_COLUMNS))
@@ -363,32 +375,6 @@ def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.Data
     return plan, skipped, cips
 
 
-def _window_samples(data: pd.DataFrame, res: WindowResult, state: ChainState) -> pd.DataFrame:
-    """Per-sample model series of one window (for samples.csv)."""
-    out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
-    out["window_start"] = res.window_start
-    series = res.detail.get("model_series")
-    if series is not None:      # the model figures' samples (evenly spaced, chain.figure_rows)
-        for kind in ("fixed", "adaptive"):
-            f = series[kind]
-            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}")):
-                v = np.full(len(out), np.nan)
-                v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
-                out[name] = v
-        res.detail.pop("model_series")
-    learner = state.learner
-    if learner is not None:
-        obs = observe(data, state.fixed, learner.s)
-        for st in STAGES:
-            pi, n = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
-            ok = np.isfinite(pi) & np.isfinite(n)
-            v = np.full(len(obs), np.nan)
-            if ok.any():
-                v[ok] = learner.eta_is(st, pi[ok], n[ok])
-            out[f"eta_is_{st}_model"] = v
-    return out
-
-
 def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.DataFrame,
                  parts: list[pd.DataFrame]) -> pd.DataFrame:
     num = lambda c: pd.to_numeric(history[c], errors="coerce").to_numpy(dtype=float) \
@@ -433,3 +419,40 @@ def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:
             "CF_dp_f_before": float(before["CF_dp_f"].mean()) if len(before) else math.nan,
             "CF_dp_f_after": float(after["CF_dp_f"].mean()) if len(after) else math.nan})
     return rows
+
+
+# --------------------------------------------------------------------------------------------------
+# the Executor seam
+# --------------------------------------------------------------------------------------------------
+def _analyse_pickled(chain_blob: bytes, task_blob: bytes) -> WindowPartial:
+    """Pass 2 of one window in whichever process the executor chose (CoolProp state and property
+    tables are built there on first use, never shipped)."""
+    chain = pickle.loads(chain_blob)
+    return chain.analyse(pickle.loads(task_blob))
+
+
+MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
+
+
+def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None):
+    """Yield each task's ``chain.analyse(task)`` in the tasks' order.
+
+    Without an executor the tasks are analysed here, one by one, as they come (pass 1 of a window
+    runs only after pass 3 of the one before: the gateway's order). With one, each task is pickled
+    the moment pass 1 has produced it (a snapshot: pass 1 goes on to change the learner for the next
+    window) and submitted; at most ``max_pending`` (default MAX_PENDING) are in flight. Pass 2
+    depends on nothing but its task, so the results equal the sequential ones."""
+    if executor is None:
+        for t in tasks:
+            yield chain.analyse(t)
+        return
+    chain_blob = pickle.dumps(chain, protocol=pickle.HIGHEST_PROTOCOL)
+    max_pending = max(1, int(max_pending or MAX_PENDING))
+    pending: deque = deque()
+    for t in tasks:
+        pending.append(executor.submit(_analyse_pickled, chain_blob,
+                                       pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL)))
+        while len(pending) >= max_pending:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()

@@ -11,8 +11,9 @@ search stalls on plateaus, so the search is:
 
 1. a coarse scan of the bounded range (``coarse_step``, default 0.5 bar) on a few of the window's
    rows (cheap; it only has to find the right bracket);
-2. a bounded Brent search (``scipy.optimize.minimize_scalar(method="bounded")``) on the evaluation
-   rows within one coarse step either side of the best scan point, ``xtol`` 0.01 bar;
+2. Brent's method on the evaluation rows within one coarse step either side of the best scan point,
+   ``xtol`` 0.01 bar: from the bracket the scan found (the best point and its two neighbours, when it
+   beats both), else a bounded search (``scipy.optimize.minimize_scalar(method="bounded")``);
 3. the better of the Brent result and the best scan point.
 
 On the plateau (every row HS-saturated at the optimum) every set point below the floating p_m gives
@@ -295,8 +296,20 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
 
     cands = [float(grid[i])]
     if b - a > xtol:
-        res = minimize_scalar(neg, bounds=(a, b), method="bounded", options={"xatol": xtol})
-        cands.insert(0, float(res.x))
+        x0 = float(grid[i])
+        if a < x0 < b and neg(x0) < min(neg(a), neg(b)):
+            # the scan already brackets the optimum (the grid point beats both neighbours): Brent's
+            # parabolic steps from that bracket (its points are cached) need ~half the evaluations
+            # of a bounded search that starts afresh; same tolerance
+            res = minimize_scalar(neg, bracket=(a, x0, b), method="brent",
+                                  options={"xtol": xtol / (3.0 * max(abs(x0), 1.0))})
+            x_b = float(res.x)
+            if not a <= x_b <= b:       # never: Brent stays inside its bracket
+                x_b = x0
+            cands.insert(0, x_b)
+        else:
+            res = minimize_scalar(neg, bounds=(a, b), method="bounded", options={"xatol": xtol})
+            cands.insert(0, float(res.x))
     sp_opt = min(cands, key=lambda s: (neg(s), cands.index(s)))
     p = ev.at(sp_opt)
     if not math.isfinite(value(p)):

@@ -34,7 +34,7 @@ from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import process, usable_counts
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
-from .compressors import STAGES, observe
+from .compressors import STAGES, CompressorLearner, observe
 
 WINDOW_COLUMNS = ROW_COLUMNS
 CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before_K_per_kW",
@@ -221,7 +221,7 @@ def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
 def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings | None = None,
            initial_window: tuple | None = None, processed: pd.DataFrame | None = None,
            progress=None, chain_settings: ChainSettings | None = None,
-           executor=None) -> ReplayResult:
+           executor=None, commissioning: dict | None = None) -> ReplayResult:
     """Replay ``history`` (canonical columns + ``timestamp``) on the plant ``params`` (plant.yaml).
 
     initial_window : (start, end) timestamps; default the first ``initial_minutes`` usable minutes.
@@ -231,6 +231,9 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     executor : anything with concurrent.futures' ``submit`` (a ProcessPoolExecutor, a Dask
         ``distributed.Client``): the windows' expensive analysis runs there (``run_windows``); the
         results are identical to the sequential replay (None: in this process, window by window).
+    commissioning : {"initial": doc, "dp_clean": doc, "compressors": doc or None} as the gateway's
+        state directory stores them: the plant was commissioned before the history starts; no
+        initial window is taken from the history and windows start at its first sample.
     """
     t0 = time.perf_counter()
     s = settings or ReplaySettings.from_config(params.extra)
@@ -247,32 +250,50 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     usable = processed["usable"].to_numpy(dtype=bool)
     notes: list[str] = []
 
-    # ---- initial window -----------------------------------------------------------------------
-    if initial_window is not None:
-        a, b = (pd.Timestamp(x) for x in initial_window)
-        a = a.tz_localize("UTC") if a.tzinfo is None else a
-        b = b.tz_localize("UTC") if b.tzinfo is None else b
-        init_mask = usable & (ts >= a) & (ts <= b)
-    else:
-        idx = np.flatnonzero(usable)[: int(s.initial_minutes)]
-        init_mask = np.zeros(len(ts), dtype=bool)
-        init_mask[idx] = True
-    if init_mask.sum() < s.min_samples:
-        raise ReplayError(f"initial window has {int(init_mask.sum())} usable samples, fewer than "
-                          f"{s.min_samples}")
-    init_idx = np.flatnonzero(init_mask)
-    iw = (ts[init_idx[0]].isoformat(), ts[init_idx[-1]].isoformat())
-    init_data = calibration_frame(history, processed, init_mask)
     chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
                           chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
                                                                       min_samples=int(s.min_samples)))
-    learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
-    base = learner.apply(params) if learner is not None else params
-    initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
-    try:
-        dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
-    except DpFitError as exc:
-        raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
+    if commissioning is not None:
+        # ---- commissioned before the history: the stored initial calibration, clean pressure-drop
+        # fit and (when there) the commissioning compressor curves; windows from the first sample
+        try:
+            initial = CalibrationResult.from_dict(commissioning["initial"])
+            dpfit = DpCleanFit.from_dict(commissioning["dp_clean"])
+            learner = None
+            if chain.s.learn_compressors:
+                doc = commissioning.get("compressors")
+                learner = (CompressorLearner.from_dict(doc, params, chain.s.learning) if doc is not None
+                           else CompressorLearner(params, chain.s.learning))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ReplayError(f"commissioning state: {exc}") from exc
+        init_idx = np.array([], dtype=int)
+        iw = (str(initial.window_start), str(initial.window_end))
+        notes.append("commissioning from the state directory (initial calibration, clean pressure "
+                     "drop" + (", compressor curves" if commissioning.get("compressors") else "") + ")")
+    else:
+        # ---- initial window -------------------------------------------------------------------
+        if initial_window is not None:
+            a, b = (pd.Timestamp(x) for x in initial_window)
+            a = a.tz_localize("UTC") if a.tzinfo is None else a
+            b = b.tz_localize("UTC") if b.tzinfo is None else b
+            init_mask = usable & (ts >= a) & (ts <= b)
+        else:
+            idx = np.flatnonzero(usable)[: int(s.initial_minutes)]
+            init_mask = np.zeros(len(ts), dtype=bool)
+            init_mask[idx] = True
+        if init_mask.sum() < s.min_samples:
+            raise ReplayError(f"initial window has {int(init_mask.sum())} usable samples, fewer than "
+                              f"{s.min_samples}")
+        init_idx = np.flatnonzero(init_mask)
+        iw = (ts[init_idx[0]].isoformat(), ts[init_idx[-1]].isoformat())
+        init_data = calibration_frame(history, processed, init_mask)
+        learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
+        base = learner.apply(params) if learner is not None else params
+        initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
+        try:
+            dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
+        except DpFitError as exc:
+            raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
     state = chain.new_state(initial.to_dict(), dpfit.to_dict(), learner)
     if not initial.identifiable:
         notes.append("the initial calibration is not fully identifiable (see its warnings); the fixed "
@@ -331,11 +352,12 @@ def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.Data
     cip_flag = (pd.to_numeric(history["cip"], errors="coerce").fillna(0).to_numpy() > 0.5
                 if "cip" in history.columns else None)
     cips = detect_cips(ts, processed, cip_flag, s.cip_off_minutes)
-    after_init = ts > ts[init_idx[-1]]
+    t_init = ts[init_idx[-1]] if len(init_idx) else ts[0] - pd.Timedelta(seconds=1)
+    after_init = ts > t_init
     # operation segments between CIPs; each is tiled evenly with windows of about window_hours, so
     # that the windows next to a CIP end at its start and begin at its end
     segments = []
-    cur = ts[init_idx[-1]] + pd.Timedelta(seconds=1)
+    cur = t_init + pd.Timedelta(seconds=1)
     for c_ in cips:
         if c_["start"] > cur:
             segments.append((cur, c_["start"]))

@@ -101,6 +101,7 @@ class CycleResult:
     _cp_l: float = 0.0      # SC liquid secant heat capacity from the last solve (warm start)
     _jac: tuple | None = None   # d(r, n_HS)/d(T_m, T_c) at a speed bound (warm start)
     _rho_l: float | None = None # SC outlet liquid density (warm start)
+    _slope_T: float = math.nan  # d((N_LS - bound)/N_nom)/dT_source,out where the LS floated (warm start)
 
     @property
     def W_total(self) -> float:
@@ -371,6 +372,7 @@ def _secant(f, x0: float, slope: float, tol: float, lo: float, hi: float, what: 
 LS_MODES = ("flag", "float")
 LS_SPEED_TOL = 1e-7       # LS speed-bound residual when T_source,out floats, relative to nominal speed
 LS_SPEED_LOOSE = 1e-3     # ... accepted when the iteration cannot get closer (non-smooth curves)
+LS_FLOAT_QUICK_ITER = 4   # Newton steps from a nearby floating point before the full search
 
 
 def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = None,
@@ -434,6 +436,10 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
     the maximum" too, and a trial point that cannot be solved counts as being on the input's side."""
     ls = params.comp_LS
     T_sp, T_in = inp.T_source_out, inp.T_source_in
+    if guess is not None and guess.ls_limit and math.isfinite(guess._slope_T):
+        quick = _ls_float_from(inp, params, guess, fluid)
+        if quick is not None:
+            return quick
     try:
         res: CycleResult | None = _solve(inp, params, guess, fluid)
         err = None
@@ -476,6 +482,9 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
         if fx is not None and abs(fx) < LS_SPEED_TOL:
             out = last["res"]
             out.ls_limit = limit
+            p_x, p_f = near if near != x else beyond, f_near if near != x else f_beyond
+            if p_x is not None and p_f is not None and p_x != x:
+                out._slope_T = (fx - p_f) / (x - p_x)
             return out
         if fx is None or fx * sgn0 > 0:
             prev = (near, f_near)
@@ -508,6 +517,45 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
         f"LS compressor at {N_b:.0f} rpm: no source outlet temperature in "
         f"{K_to_C(lo):.2f}..{K_to_C(hi):.2f} degC carries its flow",
         reason=f"ls_speed_{'high' if limit == 'max' else 'low'}", result=res)
+
+
+def _ls_float_from(inp: CycleInputs, params: PlantParams, guess: CycleResult, fluid: Fluid
+                   ) -> CycleResult | None:
+    """The floating T_source,out by Newton from a nearby point that floated at the same LS speed
+    bound (its T_source,out and slope dN_LS/dT_source,out): typically two solves instead of a solve
+    at the input plus a secant. Where the LS at its bound carries the duty at a T_source,out beyond
+    the input's (above it at N_max, below at N_min), the speed needed AT the input is beyond the
+    bound (N_LS falls monotonically as T_source,out rises), so this is the answer of the full search.
+    None when it does not converge in a few steps or ends on the input's side: the caller searches."""
+    ls = params.comp_LS
+    limit = guess.ls_limit
+    N_b = ls.N_max if limit == "max" else ls.N_min
+    T_sp, T_in = inp.T_source_out, inp.T_source_in
+    lo, hi = (T_sp, T_in - 0.05) if limit == "max" else (max(T_sp - 15.0, fluid.T_triple + 5.0), T_sp)
+    x, slope, last = min(max(guess.T_source_out, lo), hi), guess._slope_T, guess
+    x_prev = f_prev = None
+    try:
+        for _ in range(LS_FLOAT_QUICK_ITER):
+            r = _solve(inp.replace(T_source_out=x), params, last, fluid)
+            f = (r.N_LS - N_b) / ls.N_nom
+            if x_prev is not None and x != x_prev and f != f_prev:
+                slope = (f - f_prev) / (x - x_prev)
+            if abs(f) < LS_SPEED_TOL:
+                inside = x > T_sp + 1e-9 if limit == "max" else x < T_sp - 1e-9
+                if not inside:
+                    return None
+                r.ls_limit = limit
+                r._slope_T = slope
+                return r
+            if not (slope < 0.0 and math.isfinite(slope)):
+                return None
+            x_prev, f_prev, last = x, f, r
+            x = x - f / slope
+            if not lo <= x <= hi:
+                return None
+    except ModelError:
+        return None
+    return None
 
 
 def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, fluid: Fluid) -> CycleResult:

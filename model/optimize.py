@@ -10,7 +10,9 @@ LS compressor than 1800 rpm gives, T_source,out floats and the heat output drops
 search stalls on plateaus, so the search is:
 
 1. a coarse scan of the bounded range (``coarse_step``, default 0.5 bar) on a few of the window's
-   rows (cheap; it only has to find the right bracket);
+   rows (cheap; it only has to find the right bracket), in two levels: every second grid point, then
+   the neighbours of the points that solve and are feasible (the same result as the whole grid
+   unless the feasible set has a stretch narrower than two grid points);
 2. Brent's method on the evaluation rows within one coarse step either side of the best scan point,
    ``xtol`` 0.01 bar: from the bracket the scan found (the best point and its two neighbours, when it
    beats both), else a bounded search (``scipy.optimize.minimize_scalar(method="bounded")``);
@@ -271,7 +273,20 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
         if feasible is not None and n > 1 and not math.isfinite(value(ev.at(sp, probe))):
             return -math.inf
         return value(ev.at(sp, sub))
-    scan = np.array([scan_value(float(sp)) for sp in grid])
+    # the scan in two levels: every second grid point first, then the grid points next to every
+    # candidate that survived. Every feasible stretch of two or more grid points holds a first-level
+    # point, so this equals scanning the whole grid unless a stretch is a single grid point (a set
+    # point range narrower than one coarse step, between two first-level points)
+    scan = np.full(len(grid), -np.inf)
+    done = np.zeros(len(grid), dtype=bool)
+    for k in range(0, len(grid), 2):
+        scan[k], done[k] = scan_value(float(grid[k])), True
+    if len(grid) % 2 == 0:
+        scan[-1], done[-1] = scan_value(float(grid[-1])), True
+    for k in np.flatnonzero(np.isfinite(scan) & done):
+        for j in (k - 1, k + 1):
+            if 0 <= j < len(grid) and not done[j]:
+                scan[j], done[j] = scan_value(float(grid[j])), True
     if not np.isfinite(scan).any():
         raise OptimizationError("no set point in the range solves every sample of the window"
                                 + (" within the trusted region" if feasible else ""))
@@ -297,12 +312,17 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     cands = [float(grid[i])]
     if b - a > xtol:
         x0 = float(grid[i])
-        if a < x0 < b and neg(x0) < min(neg(a), neg(b)):
+        inward = x0 + xtol if x0 == a else (x0 - xtol if x0 == b else None)
+        if inward is not None and neg(inward) > neg(x0):
+            # the best grid point sits at the edge of the feasible stretch and the COP falls away
+            # from it: the optimum is the edge itself (to within xtol), no search needed
+            pass
+        elif a < x0 < b and neg(x0) < min(neg(a), neg(b)):
             # the scan already brackets the optimum (the grid point beats both neighbours): Brent's
             # parabolic steps from that bracket (its points are cached) need ~half the evaluations
             # of a bounded search that starts afresh; same tolerance
             res = minimize_scalar(neg, bracket=(a, x0, b), method="brent",
-                                  options={"xtol": xtol / (3.0 * max(abs(x0), 1.0))})
+                                  options={"xtol": xtol / (10.0 * max(abs(x0), 1.0))})
             x_b = float(res.x)
             if not a <= x_b <= b:       # never: Brent stays inside its bracket
                 x_b = x0

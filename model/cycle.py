@@ -467,6 +467,14 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
     sgn0 = 1.0 if limit == "max" else -1.0      # sign of g on the input's side
     near, f_near = T_sp, (None if res is None else (res.N_LS - N_b) / ls.N_nom)
     beyond = f_beyond = None                    # a point where the bound is met (sign change)
+    if res is None:
+        # the input cannot be solved at all: first the far end (the least duty). If even that
+        # cannot be solved, or the bound is not met there, no floating point exists: the input's
+        # failure is the answer (searching the bracket toward it would only repeat the failure)
+        f_far = g(far)
+        if f_far is None or f_far * sgn0 > 0:
+            raise err
+        beyond, f_beyond = far, f_far
     if res is not None:
         x = T_in - (T_in - T_sp) * N_b / res.N_LS          # duty proportional to speed
     else:

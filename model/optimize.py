@@ -38,6 +38,7 @@ sample that stops solving at a candidate set point makes that candidate infeasib
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -182,14 +183,21 @@ class Evaluator:
             else None
 
     def _nearest(self, i: int, sp: float):
-        for mem in (self._mem[i], self._other._mem[i] if self._other is not None else ()):
-            best, dist = None, GUESS_BAR
-            for x, row in mem:
-                d = abs(x - sp)
-                if d <= dist:
-                    best, dist = row, d
-            if best is not None:
-                return best[2]
+        """The warm start of row i at set point sp: its own solution nearest in set point (the
+        condensing temperature interpolated to sp from the two nearest where both held the set
+        point), else the other evaluator's, else None (the previous row's)."""
+        for own, mem in ((True, self._mem[i]), (False, self._other._mem[i] if self._other is not None else ())):
+            near = sorted(((abs(x - sp), x, row) for x, row in mem if abs(x - sp) <= GUESS_BAR),
+                          key=lambda t: t[0])
+            if not near:
+                continue
+            g = near[0][2][2]
+            if own and len(near) >= 2 and near[0][0] > 0.0:
+                (_, x0, r0), (_, x1, r1) = near[0], near[1]
+                a, b = r0[2], r1[2]
+                if x1 != x0 and a.branch == b.branch == "sp" and not a.ls_limit and not b.ls_limit:
+                    g = dataclasses.replace(a, T_c=a.T_c + (b.T_c - a.T_c) * (sp - x0) / (x1 - x0))
+            return g
         return None
 
     def at(self, sp: float | None, rows: np.ndarray | None = None) -> Point:

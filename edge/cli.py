@@ -17,6 +17,7 @@ COMMAND_MODULES = (
     "edge.commands.analysis_cmds",   # calibrate, optimize, fit-surrogate, replay
     "edge.commands.gateway_cmds",    # run, demo, read, check-config
     "edge.commands.report_cmds",     # report, export-history
+    "edge.commands.fleet_cmds",      # fleet replay (dask, imported only when it runs)
 )
 
 

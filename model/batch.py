@@ -59,6 +59,19 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
     ls_mode : "flag" (measured data: an LS speed out of range is a flagged row) or "float"
         (prediction: the LS saturates and T_source,out floats; see model.cycle.solve).
     """
+    rows = solve_rows(df, params, p_m_sp, ls_mode)
+    return frame_of(rows, params, columns, df.index)
+
+
+Row = tuple  # (status, reason, CycleResult | None) of one simulated row
+
+
+def solve_rows(df: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
+               guesses: list | None = None) -> list[Row]:
+    """``simulate_batch``'s solves: per row (status, reason, CycleResult or None).
+
+    Each row is warm-started from the previous row's solution, or from ``guesses[i]`` where given
+    (a solution of the same row nearby, e.g. at another set point or with other parameters)."""
     missing = [c for c in INPUT_COLUMNS if c not in df.columns and not (c == "p_m_sp" and p_m_sp is not None)]
     if missing:
         raise KeyError(f"input columns missing: {', '.join(missing)}")
@@ -68,33 +81,46 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
     cols = {c: np.asarray(df[c], dtype=float) for c in INPUT_COLUMNS if c in df.columns}
     if p_m_sp is not None:
         cols["p_m_sp"] = np.broadcast_to(np.asarray(p_m_sp, dtype=float), (n,))
-    out = {k: np.full(n, np.nan) for k in columns}
-    status = np.empty(n, dtype=object)
-    reason = np.empty(n, dtype=object)
+    out: list[Row] = []
     guess = None
     for i in range(n):
         vals = {c: cols[c][i] for c in INPUT_COLUMNS}
         bad = [c for c, v in vals.items() if not math.isfinite(v)]
         if bad:
-            status[i], reason[i] = "bad_input", f"missing or non-finite: {', '.join(bad)}"
+            out.append(("bad_input", f"missing or non-finite: {', '.join(bad)}", None))
             continue
+        g = guesses[i] if guesses is not None and guesses[i] is not None else guess
         try:
-            res = solve(inputs_from_row(vals, amb_bar), params, guess=guess, fluid=fluid,
-                        ls_mode=ls_mode)
-            status[i], reason[i] = "ok", ""
+            res = solve(inputs_from_row(vals, amb_bar), params, guess=g, fluid=fluid, ls_mode=ls_mode)
+            st, why = "ok", ""
         except InfeasibleOperation as exc:
-            status[i], reason[i] = exc.reason, str(exc)
+            st, why = exc.reason, str(exc)
             res = exc.result
         except ModelError as exc:
-            status[i], reason[i] = exc.reason, str(exc)
+            st, why = exc.reason, str(exc)
             res = None
+        out.append((st, why, res))
+        if res is not None:
+            guess = res
+    return out
+
+
+def frame_of(rows: list[Row], params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
+             index=None) -> pd.DataFrame:
+    """The output frame of solved rows (``solve_rows``): ``columns`` plus status and reason."""
+    n = len(rows)
+    out = {k: np.full(n, np.nan) for k in columns}
+    for i, (_, _, res) in enumerate(rows):
         if res is None:
             continue
-        guess = res
         row = result_row(res, params.ambient_pressure)
         for k in columns:
             out[k][i] = row[k]
-    frame = pd.DataFrame(out, index=df.index)
+    frame = pd.DataFrame(out, index=index if index is not None else pd.RangeIndex(n))
+    status = np.empty(n, dtype=object)
+    reason = np.empty(n, dtype=object)
+    for i, (st, why, _) in enumerate(rows):
+        status[i], reason[i] = st, why
     frame["status"] = status
     frame["reason"] = reason
     return frame

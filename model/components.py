@@ -66,7 +66,8 @@ def subcooler(num: float, dh: float, h_f: float, T_c: float, T_w_in: float, C_w:
 
     With ``h_liq`` (the EOS liquid enthalpy h(p_c, T)) cp is iterated to the secant over the SC's
     actual range, (h_f - h_liq(T_SC)) / (T_c - T_SC), until it changes by less than ``tol``
-    relative: the outlet is then on the EOS and the eps-NTU duty equals m*(h_f - h_SC).
+    relative: the outlet is then on the EOS and the eps-NTU duty equals m*(h_f - h_SC). From the
+    third iteration on, the fixed point in cp is accelerated by a secant step on cp_new(cp) - cp.
 
     Returns (m, h_SC, T_SC, cp). Raises ArithmeticError when it does not converge.
     """
@@ -79,6 +80,7 @@ def subcooler(num: float, dh: float, h_f: float, T_c: float, T_w_in: float, C_w:
         eps, C_min = counterflow_eps(x * cp, C_w, UA)
         return num / (dh + eps * C_min * dT / x)
 
+    prev = None           # (cp, cp_new - cp) of the previous iteration (secant acceleration)
     for _ in range(max_iter):
         x0, r0 = m, G(m) - m
         x1 = x0 + r0
@@ -102,7 +104,14 @@ def subcooler(num: float, dh: float, h_f: float, T_c: float, T_w_in: float, C_w:
         h = h_liq(T_SC)
         cp_new = (h_f - h) / (T_c - T_SC)
         done = abs(cp_new - cp) <= tol * cp
-        cp = cp_new
         if done:
-            return num / (dh + h_f - h), h, T_SC, cp
+            return num / (dh + h_f - h), h, T_SC, cp_new
+        r = cp_new - cp
+        nxt = cp_new
+        if prev is not None and r != prev[1]:
+            sec = cp - r * (cp - prev[0]) / (r - prev[1])
+            if sec > 0.0 and abs(sec - cp_new) < abs(r):
+                nxt = sec
+        prev = (cp, r)
+        cp = nxt
     raise ArithmeticError("subcooler: outlet state did not converge")

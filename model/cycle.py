@@ -27,6 +27,8 @@ ENERGY_TOL = 1e-10        # condenser-zone residual, relative to Q_source
 SPEED_TOL = 1e-9          # HS speed-bound residual, relative to nominal speed
 MAX_ITER = 40
 SC_TOL = 1e-10            # SC liquid secant heat capacity vs the EOS, relative
+BOUND_NEWTON_ITER = 12    # joint (T_m, T_c) Newton at an HS speed bound: iterations before fallback
+BOUND_NEWTON_STEP = 5.0   # K, largest step of either temperature
 
 
 class ModelError(Exception):
@@ -97,6 +99,9 @@ class CycleResult:
     _slope_m: float = 0.0   # d(n_HS)/dT_m from the last solve (warm start)
     _warm: dict = field(default_factory=dict)   # (p, rho, T) of the isentropic discharge states
     _cp_l: float = 0.0      # SC liquid secant heat capacity from the last solve (warm start)
+    _jac: tuple | None = None   # d(r, n_HS)/d(T_m, T_c) at a speed bound (warm start)
+    _rho_l: float | None = None # SC outlet liquid density (warm start)
+    _slope_T: float = math.nan  # d((N_LS - bound)/N_nom)/dT_source,out where the LS floated (warm start)
 
     @property
     def W_total(self) -> float:
@@ -189,6 +194,7 @@ class _Point:
         self.n_HS = guess.N_HS / params.comp_HS.N_nom if guess else 1.0
         self.m_HS = guess.m_HS if guess else None
         self.cp_l = guess._cp_l if guess else None     # SC liquid secant heat capacity (warm start)
+        self._rho_l = guess._rho_l if guess else None  # SC outlet liquid density (warm start)
         if guess:
             for stage, g in guess._warm.items():
                 setattr(self, "_g_" + stage, g)
@@ -216,6 +222,13 @@ class _Point:
         out = (m_LS, n, ev, eta, h2s, T2s, rho2s, h2)
         self._ls_cache = (sat_m.T, out)
         return out
+
+    def _h_liq(self, sat_c: SatState, T: float) -> float:
+        """Liquid enthalpy at (p_c, T) by Newton from the last liquid density of this point's
+        solve (or of its warm start), by the (P,T) flash the first time."""
+        h, rho = self.fl.liquid_pT_rho(sat_c.p, T, self._rho_l)
+        self._rho_l = rho
+        return h
 
     def _rhoT_guess(self, stage: str, p: float):
         g = getattr(self, "_g_" + stage, None)
@@ -263,7 +276,7 @@ class _Point:
         try:
             m, h_SC, T_SC, cp_l = subcooler(num, sat_m.h_g - sat_c.h_f, sat_c.h_f, T_c, inp.T_sink_in,
                                             self.C_w, self.UA_SC, cp_l, self.m_HS,
-                                            lambda T: fl.liquid_pT(sat_c.p, T), tol=SC_TOL)
+                                            lambda T: self._h_liq(sat_c, T), tol=SC_TOL)
         except ArithmeticError as exc:
             raise ConvergenceError(str(exc), reason="no_convergence") from None
         self.m_HS, self.cp_l = m, cp_l
@@ -359,6 +372,7 @@ def _secant(f, x0: float, slope: float, tol: float, lo: float, hi: float, what: 
 LS_MODES = ("flag", "float")
 LS_SPEED_TOL = 1e-7       # LS speed-bound residual when T_source,out floats, relative to nominal speed
 LS_SPEED_LOOSE = 1e-3     # ... accepted when the iteration cannot get closer (non-smooth curves)
+LS_FLOAT_QUICK_ITER = 4   # Newton steps from a nearby floating point before the full search
 
 
 def solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None = None,
@@ -422,6 +436,10 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
     the maximum" too, and a trial point that cannot be solved counts as being on the input's side."""
     ls = params.comp_LS
     T_sp, T_in = inp.T_source_out, inp.T_source_in
+    if guess is not None and guess.ls_limit and math.isfinite(guess._slope_T):
+        quick = _ls_float_from(inp, params, guess, fluid)
+        if quick is not None:
+            return quick
     try:
         res: CycleResult | None = _solve(inp, params, guess, fluid)
         err = None
@@ -449,6 +467,14 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
     sgn0 = 1.0 if limit == "max" else -1.0      # sign of g on the input's side
     near, f_near = T_sp, (None if res is None else (res.N_LS - N_b) / ls.N_nom)
     beyond = f_beyond = None                    # a point where the bound is met (sign change)
+    if res is None:
+        # the input cannot be solved at all: first the far end (the least duty). If even that
+        # cannot be solved, or the bound is not met there, no floating point exists: the input's
+        # failure is the answer (searching the bracket toward it would only repeat the failure)
+        f_far = g(far)
+        if f_far is None or f_far * sgn0 > 0:
+            raise err
+        beyond, f_beyond = far, f_far
     if res is not None:
         x = T_in - (T_in - T_sp) * N_b / res.N_LS          # duty proportional to speed
     else:
@@ -464,6 +490,9 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
         if fx is not None and abs(fx) < LS_SPEED_TOL:
             out = last["res"]
             out.ls_limit = limit
+            p_x, p_f = near if near != x else beyond, f_near if near != x else f_beyond
+            if p_x is not None and p_f is not None and p_x != x:
+                out._slope_T = (fx - p_f) / (x - p_x)
             return out
         if fx is None or fx * sgn0 > 0:
             prev = (near, f_near)
@@ -496,6 +525,45 @@ def _solve_ls_float(inp: CycleInputs, params: PlantParams, guess: CycleResult | 
         f"LS compressor at {N_b:.0f} rpm: no source outlet temperature in "
         f"{K_to_C(lo):.2f}..{K_to_C(hi):.2f} degC carries its flow",
         reason=f"ls_speed_{'high' if limit == 'max' else 'low'}", result=res)
+
+
+def _ls_float_from(inp: CycleInputs, params: PlantParams, guess: CycleResult, fluid: Fluid
+                   ) -> CycleResult | None:
+    """The floating T_source,out by Newton from a nearby point that floated at the same LS speed
+    bound (its T_source,out and slope dN_LS/dT_source,out): typically two solves instead of a solve
+    at the input plus a secant. Where the LS at its bound carries the duty at a T_source,out beyond
+    the input's (above it at N_max, below at N_min), the speed needed AT the input is beyond the
+    bound (N_LS falls monotonically as T_source,out rises), so this is the answer of the full search.
+    None when it does not converge in a few steps or ends on the input's side: the caller searches."""
+    ls = params.comp_LS
+    limit = guess.ls_limit
+    N_b = ls.N_max if limit == "max" else ls.N_min
+    T_sp, T_in = inp.T_source_out, inp.T_source_in
+    lo, hi = (T_sp, T_in - 0.05) if limit == "max" else (max(T_sp - 15.0, fluid.T_triple + 5.0), T_sp)
+    x, slope, last = min(max(guess.T_source_out, lo), hi), guess._slope_T, guess
+    x_prev = f_prev = None
+    try:
+        for _ in range(LS_FLOAT_QUICK_ITER):
+            r = _solve(inp.replace(T_source_out=x), params, last, fluid)
+            f = (r.N_LS - N_b) / ls.N_nom
+            if x_prev is not None and x != x_prev and f != f_prev:
+                slope = (f - f_prev) / (x - x_prev)
+            if abs(f) < LS_SPEED_TOL:
+                inside = x > T_sp + 1e-9 if limit == "max" else x < T_sp - 1e-9
+                if not inside:
+                    return None
+                r.ls_limit = limit
+                r._slope_T = slope
+                return r
+            if not (slope < 0.0 and math.isfinite(slope)):
+                return None
+            x_prev, f_prev, last = x, f, r
+            x = x - f / slope
+            if not lo <= x <= hi:
+                return None
+    except ModelError:
+        return None
+    return None
 
 
 def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, fluid: Fluid) -> CycleResult:
@@ -542,7 +610,18 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
     # needed AT the set point decides: within the range -> "sp"; above N_max -> the HS runs at N_max
     # and p_m floats above the set point; below N_min -> at N_min, p_m floats below.
     T_m = T_m_sp
-    if inp.p_m_sp <= pt.p_e * 1.001:
+    joint = None
+    if guess is not None and guess.branch == "hs_max" and inp.p_m_sp > pt.p_e * 1.001:
+        # the previous point ran the HS flat out: solve that branch directly. Where the HS at full
+        # speed holds p_m above the set point, the speed needed AT the set point is above the
+        # maximum (it falls as p_m rises), which is the branch test below without its T_c solve
+        joint = _bound_newton(pt, max(guess.T_m, T_m_sp), guess.T_c, n_max, T_m_sp, guess.T_c + 10.0,
+                              max(T_c_lo, pt.T_e + 0.1), T_c_max, guess._jac)
+        if joint is not None and not joint[0] > T_m_sp + 1e-6:
+            joint = None
+    if joint is not None:
+        branch = "hs_max"
+    elif inp.p_m_sp <= pt.p_e * 1.001:
         # a set point at or below p_e cannot be held: the HS runs flat out and p_m floats
         branch, bound, lo, hi = "hs_max", n_max, pt.T_e + 0.05, T_c_guess[0] - 0.1
     else:
@@ -553,13 +632,26 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
             branch, bound, lo, hi = "hs_min", n_min, pt.T_e + 0.05, T_m_sp
         else:
             branch = "sp"
-    if branch != "sp":
-        T_m0 = guess.T_m if (guess and guess.branch == branch and lo < guess.T_m < hi) else (
-            T_m_sp if lo < T_m_sp < hi else 0.5 * (lo + hi))
+    jac = None
+    if joint is not None:
+        T_m, T_c_guess[0], jac = joint
+        slope_c = jac[0][1]
+    elif branch != "sp":
+        warm = guess is not None and guess.branch == branch and lo < guess.T_m < hi
+        T_m0 = guess.T_m if warm else (T_m_sp if lo < T_m_sp < hi else 0.5 * (lo + hi))
+        # first a joint Newton on (T_m, T_c), Broyden-updated from the previous point's Jacobian
+        # (~4 flowsheet evaluations instead of ~15 for the nested secants); the nested secants below
+        # remain the fallback and say why a point has no solution
+        joint = _bound_newton(pt, T_m0, guess.T_c if warm else T_c_guess[0], bound, lo, hi,
+                              max(T_c_lo, pt.T_e + 0.1), T_c_max, guess._jac if warm else None)
+        if joint is not None:
+            T_m, T_c_guess[0], jac = joint
+            slope_c = jac[0][1]
         g = lambda Tm: n_HS_at(Tm) - bound  # noqa: E731
         try:
-            T_m, _, slope_m = _secant(g, T_m0, slope_m, SPEED_TOL, lo, hi,
-                                      f"intermediate pressure at HS speed bound ({branch})")
+            if joint is None:
+                T_m, _, slope_m = _secant(g, T_m0, slope_m, SPEED_TOL, lo, hi,
+                                          f"intermediate pressure at HS speed bound ({branch})")
         except ConvergenceError:
             # N_HS falls as p_m rises; no root in [lo, hi] means the bound cannot be met at all
             if branch == "hs_min" and g(lo) < 0.0:
@@ -574,11 +666,56 @@ def _solve(inp: CycleInputs, params: PlantParams, guess: CycleResult | None, flu
 
     T_c = solve_Tc(T_m)
     s = pt.evaluate(T_m, T_c, full=True)
-    return _assemble(pt, s, branch, T_m, T_c, slope_c, slope_m)
+    return _assemble(pt, s, branch, T_m, T_c, slope_c, slope_m, jac)
+
+
+def _bound_newton(pt: _Point, T_m: float, T_c: float, bound: float, lo: float, hi: float,
+                  T_c_lo: float, T_c_max: float, J: tuple | None):
+    """(T_m, T_c) where the condenser zone carries its duty (residual r = 0) and the HS compressor
+    runs at its speed bound (n_HS = bound), by Newton on both at once with Broyden updates of the
+    Jacobian (finite differences when no previous Jacobian is given). Returns (T_m, T_c, J) at the
+    same tolerances as the nested secants, or None when it does not converge quickly or leaves the
+    domain (the caller then falls back to the nested secants)."""
+    if not (lo <= T_m <= hi and T_c_lo < T_c <= T_c_max and T_m < T_c - 0.05):
+        return None
+    try:
+        r, n = pt.evaluate(T_m, T_c)
+        F = (r, n - bound)
+        if J is None or not all(map(math.isfinite, (*J[0], *J[1]))):
+            h = 1e-3
+            r1, n1 = pt.evaluate(T_m + h, T_c)
+            r2, n2 = pt.evaluate(T_m, T_c + h)
+            J = ((r1 - r) / h, (r2 - r) / h), ((n1 - n) / h, (n2 - n) / h)
+        for _ in range(BOUND_NEWTON_ITER):
+            if abs(F[0]) < ENERGY_TOL and abs(F[1]) < SPEED_TOL:
+                return T_m, T_c, J
+            (a, b), (c, d) = J
+            det = a * d - b * c
+            if det == 0.0 or not math.isfinite(det):
+                return None
+            dm = -(d * F[0] - b * F[1]) / det
+            dc = -(a * F[1] - c * F[0]) / det
+            big = max(abs(dm), abs(dc))
+            if big > BOUND_NEWTON_STEP:
+                dm, dc = dm * BOUND_NEWTON_STEP / big, dc * BOUND_NEWTON_STEP / big
+            T_m1, T_c1 = T_m + dm, T_c + dc
+            if not (lo <= T_m1 <= hi and T_c_lo < T_c1 <= T_c_max and T_m1 < T_c1 - 0.05):
+                return None
+            r, n = pt.evaluate(T_m1, T_c1)
+            F1 = (r, n - bound)
+            # Broyden: J += (dF - J dx) dx^T / (dx . dx)
+            dd = dm * dm + dc * dc
+            u0 = (F1[0] - F[0]) - (a * dm + b * dc)
+            u1 = (F1[1] - F[1]) - (c * dm + d * dc)
+            J = ((a + u0 * dm / dd, b + u0 * dc / dd), (c + u1 * dm / dd, d + u1 * dc / dd))
+            T_m, T_c, F = T_m1, T_c1, F1
+    except ModelError:
+        return None
+    return None
 
 
 def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c: float,
-              slope_m: float) -> CycleResult:
+              slope_m: float, jac: tuple | None = None) -> CycleResult:
     inp, par, fl = pt.inp, pt.par, pt.fl
     sat_m, sat_c, sat_e = s["sat_m"], s["sat_c"], pt.sat_e
     m_LS, m_HS = s["m_LS"], s["m_HS"]
@@ -618,7 +755,8 @@ def _assemble(pt: _Point, s: dict, branch: str, T_m: float, T_c: float, slope_c:
         dp_source=par.CF_dp_f * par.dp_clean(inp.V_source), superheat=par.superheat,
         subcooling=T_c - T_SC_out, pinch=pinch, dsh_condensing=s["dsh_condensing"], states=states,
         T_source_out=inp.T_source_out,
-        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m, _cp_l=pt.cp_l or 0.0,
+        iterations=pt.evals, _slope_c=slope_c, _slope_m=slope_m, _cp_l=pt.cp_l or 0.0, _jac=jac,
+        _rho_l=pt._rho_l,
         _warm={k: getattr(pt, "_g_" + k) for k in ("LS", "HS") if getattr(pt, "_g_" + k, None)})
 
 

@@ -12,10 +12,11 @@ import math
 import numpy as np
 import pandas as pd
 
-from .analysis.compressors import eta_is_measured
+from .analysis.compressors import eta_is_arrays
 from .components import evaporator_UA
 from .columns import REQUIRED  # the one list of SPEC §4's required names (re-exported here)
 from .fluid import PropertyError, get_fluid
+from .proptable import get_tables
 from .params import PlantParams
 from .units import BAR, C_to_K
 
@@ -89,25 +90,26 @@ def _derived(df: pd.DataFrame, params: PlantParams):
         out["heat_balance_pct"] = 100.0 * (out["Q_sink_kW"] - out["Q_source_kW"] - W) / out["Q_sink_kW"]
 
     fl = get_fluid(params.fluid, params.backend)
-    T_e_sat = np.full(n, np.nan)
-    eta_LS = np.full(n, np.nan)
-    eta_HS = np.full(n, np.nan)
-    prop_fail = np.zeros(n, dtype=bool)
+    tab = get_tables(params.fluid)
     p_e = out["p_e_bar"].to_numpy() * BAR
     p_m = out["p_m_bar"].to_numpy() * BAR
     p_c = out["p_c_bar"].to_numpy() * BAR
     C_src = params.cp_w * params.rho_w * num["V_source"] / 3600.0
-    warm: dict = {}
-    for i in range(n):
+    # vectorised property tables (model.proptable); HEOS row by row where they cannot answer
+    has_e = np.isfinite(p_e) & (p_e > 0) & (p_e < fl.p_crit)
+    T_e_sat = np.where(has_e, tab.T_sat(p_e), np.nan)
+    prop_fail = np.zeros(n, dtype=bool)
+    for i in np.flatnonzero(has_e & ~np.isfinite(T_e_sat)):
         try:
-            if math.isfinite(p_e[i]) and 0 < p_e[i] < fl.p_crit:
-                T_e_sat[i] = fl.sat_p(p_e[i]).T
-            eta_LS[i] = eta_is_measured(fl, p_e[i], C_to_K(num["T_suc_LS"][i]), p_m[i],
-                                        C_to_K(num["T_dis_LS"][i]), warm, "LS")
-            eta_HS[i] = eta_is_measured(fl, p_m[i], C_to_K(num["T_suc_HS"][i]), p_c[i],
-                                        C_to_K(num["T_dis_HS"][i]), warm, "HS")
+            T_e_sat[i] = fl.sat_p(p_e[i]).T
         except PropertyError:
             prop_fail[i] = True
+    eta_LS, fail_LS = eta_is_arrays(tab, fl, p_e, C_to_K(num["T_suc_LS"]), p_m, C_to_K(num["T_dis_LS"]))
+    eta_HS, fail_HS = eta_is_arrays(tab, fl, p_m, C_to_K(num["T_suc_HS"]), p_c, C_to_K(num["T_dis_HS"]))
+    # as the sample-by-sample evaluation did: a failure leaves the later quantities of the row unset
+    eta_LS[prop_fail] = np.nan
+    eta_HS[prop_fail | fail_LS] = np.nan
+    prop_fail |= fail_LS | fail_HS
     out["T_e_sat_C"] = T_e_sat - 273.15
     out["superheat_K"] = num["T_suc_LS"] - out["T_e_sat_C"]
     out["eta_is_LS_meas"] = eta_LS

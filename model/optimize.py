@@ -10,9 +10,12 @@ LS compressor than 1800 rpm gives, T_source,out floats and the heat output drops
 search stalls on plateaus, so the search is:
 
 1. a coarse scan of the bounded range (``coarse_step``, default 0.5 bar) on a few of the window's
-   rows (cheap; it only has to find the right bracket);
-2. a bounded Brent search (``scipy.optimize.minimize_scalar(method="bounded")``) on the evaluation
-   rows within one coarse step either side of the best scan point, ``xtol`` 0.01 bar;
+   rows (cheap; it only has to find the right bracket), in two levels: every second grid point, then
+   the neighbours of the points that solve and are feasible (the same result as the whole grid
+   unless the feasible set has a stretch narrower than two grid points);
+2. Brent's method on the evaluation rows within one coarse step either side of the best scan point,
+   ``xtol`` 0.01 bar: from the bracket the scan found (the best point and its two neighbours, when it
+   beats both), else a bounded search (``scipy.optimize.minimize_scalar(method="bounded")``);
 3. the better of the Brent result and the best scan point.
 
 On the plateau (every row HS-saturated at the optimum) every set point below the floating p_m gives
@@ -35,6 +38,7 @@ sample that stops solving at a candidate set point makes that candidate infeasib
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -44,9 +48,9 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from .batch import INPUT_COLUMNS, simulate_batch
+from .batch import INPUT_COLUMNS, frame_of, simulate_batch, solve_rows
 from .params import PlantParams
-from .units import Pa_to_barg
+from .units import BAR, Pa_to_barg
 
 COARSE_STEP = 0.5         # bar, coarse scan resolution
 XTOL = 0.01               # bar, Brent tolerance on the set point
@@ -54,6 +58,8 @@ SUBSAMPLE = 12            # rows used by the coarse scan
 BOUND_MARGIN = 0.05       # bar, kept clear of p_e and p_c
 PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
 SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
+GUESS_BAR = 1.0           # bar: a row's own solution this close in set point is its warm start
+PLATEAU_REUSE_BAR = 0.01  # bar: below a row's floating p_m by this, its plateau solution is reused
 COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP",
            "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C", "eta_is_LS", "eta_is_HS")
 
@@ -149,16 +155,50 @@ def representative(data: pd.DataFrame, k: int,
 
 
 class Evaluator:
-    """Simulates evaluation rows at a set point (one value for all rows), with a cache."""
+    """Simulates evaluation rows at a set point (one value for all rows), with a cache.
+
+    Every row remembers its solutions: a row is warm-started from its own solution at the nearest
+    set point already evaluated (within ``GUESS_BAR``; the Brent steps and the uncertainty draws
+    then converge in one or two flowsheet evaluations), else from the previous row's. On the
+    HS-speed plateau the solution does not depend on the set point (the HS runs flat out and p_m
+    floats above it), so a row that ran there at one set point answers every lower set point without
+    a solve. ``guess_from``: another Evaluator on the same rows (other parameters, e.g. an
+    uncertainty draw) whose solutions are warm starts too. The results depend on the order of the
+    calls only within the solver's tolerances, and a given sequence of calls always gives the same
+    numbers."""
 
     def __init__(self, rows: pd.DataFrame, weights: np.ndarray, params: PlantParams,
-                 ls_mode: str = "float") -> None:
+                 ls_mode: str = "float", guess_from: "Evaluator | None" = None) -> None:
         self.rows = rows.reset_index(drop=True)
         self.w = np.asarray(weights, dtype=float)
         self.params = params
         self.ls_mode = ls_mode
         self.evals = 0
+        self.solves = 0
         self._cache: dict[float | None, Point] = {}
+        self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
+        self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
+        self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
+        self._other = guess_from if guess_from is not None and len(guess_from.rows) == len(self.rows) \
+            else None
+
+    def _nearest(self, i: int, sp: float):
+        """The warm start of row i at set point sp: its own solution nearest in set point (the
+        condensing temperature interpolated to sp from the two nearest where both held the set
+        point), else the other evaluator's, else None (the previous row's)."""
+        for own, mem in ((True, self._mem[i]), (False, self._other._mem[i] if self._other is not None else ())):
+            near = sorted(((abs(x - sp), x, row) for x, row in mem if abs(x - sp) <= GUESS_BAR),
+                          key=lambda t: t[0])
+            if not near:
+                continue
+            g = near[0][2][2]
+            if own and len(near) >= 2 and near[0][0] > 0.0:
+                (_, x0, r0), (_, x1, r1) = near[0], near[1]
+                a, b = r0[2], r1[2]
+                if x1 != x0 and a.branch == b.branch == "sp" and not a.ls_limit and not b.ls_limit:
+                    g = dataclasses.replace(a, T_c=a.T_c + (b.T_c - a.T_c) * (sp - x0) / (x1 - x0))
+            return g
+        return None
 
     def at(self, sp: float | None, rows: np.ndarray | None = None) -> Point:
         """Figures at set point ``sp`` [bar(g)] (None: each row's own p_m_sp). ``rows`` picks a
@@ -167,9 +207,34 @@ class Evaluator:
         if rows is None and key in self._cache:
             return self._cache[key]
         self.evals += 1
-        d = self.rows if rows is None else self.rows.iloc[rows]
-        w = self.w if rows is None else self.w[rows]
-        f = simulate_batch(d, self.params, p_m_sp=sp, columns=COLUMNS, ls_mode=self.ls_mode)
+        idx = np.arange(len(self.rows)) if rows is None else np.asarray(rows, dtype=int)
+        w = self.w if rows is None else self.w[idx]
+        sps = self._own_sp[idx] if sp is None else np.full(len(idx), float(sp))
+        amb = self.params.ambient_pressure / BAR
+        out: list = [None] * len(idx)
+        todo = []
+        for j, (i, x) in enumerate(zip(idx, sps)):
+            pl = self._plateau[i]
+            if pl is not None and x <= pl[0] - PLATEAU_REUSE_BAR:
+                out[j] = pl[1]
+            else:
+                todo.append(j)
+        if todo:
+            sel = idx[todo]
+            solved = solve_rows(self.rows.iloc[sel], self.params, p_m_sp=sps[todo], ls_mode=self.ls_mode,
+                                guesses=[self._nearest(i, x) for i, x in zip(sel, sps[todo])])
+            self.solves += len(todo)
+            for j, i, x, r in zip(todo, sel, sps[todo], solved):
+                out[j] = r
+                res = r[2]
+                if res is None:
+                    continue
+                self._mem[i].append((float(x), r))
+                if res.branch == "hs_max" and r[0] in SOLVED:
+                    p_float = float(Pa_to_barg(res.p_m, amb))
+                    if self._plateau[i] is None:
+                        self._plateau[i] = (p_float, r)
+        f = frame_of(out, self.params, COLUMNS, self.rows.index[idx])
         p = _point(sp, f, w)
         if rows is None:
             self._cache[key] = p
@@ -216,7 +281,20 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
         if feasible is not None and n > 1 and not math.isfinite(value(ev.at(sp, probe))):
             return -math.inf
         return value(ev.at(sp, sub))
-    scan = np.array([scan_value(float(sp)) for sp in grid])
+    # the scan in two levels: every second grid point first, then the grid points next to every
+    # candidate that survived. Every feasible stretch of two or more grid points holds a first-level
+    # point, so this equals scanning the whole grid unless a stretch is a single grid point (a set
+    # point range narrower than one coarse step, between two first-level points)
+    scan = np.full(len(grid), -np.inf)
+    done = np.zeros(len(grid), dtype=bool)
+    for k in range(0, len(grid), 2):
+        scan[k], done[k] = scan_value(float(grid[k])), True
+    if len(grid) % 2 == 0:
+        scan[-1], done[-1] = scan_value(float(grid[-1])), True
+    for k in np.flatnonzero(np.isfinite(scan) & done):
+        for j in (k - 1, k + 1):
+            if 0 <= j < len(grid) and not done[j]:
+                scan[j], done[j] = scan_value(float(grid[j])), True
     if not np.isfinite(scan).any():
         raise OptimizationError("no set point in the range solves every sample of the window"
                                 + (" within the trusted region" if feasible else ""))
@@ -241,8 +319,25 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
 
     cands = [float(grid[i])]
     if b - a > xtol:
-        res = minimize_scalar(neg, bounds=(a, b), method="bounded", options={"xatol": xtol})
-        cands.insert(0, float(res.x))
+        x0 = float(grid[i])
+        inward = x0 + xtol if x0 == a else (x0 - xtol if x0 == b else None)
+        if inward is not None and neg(inward) > neg(x0):
+            # the best grid point sits at the edge of the feasible stretch and the COP falls away
+            # from it: the optimum is the edge itself (to within xtol), no search needed
+            pass
+        elif a < x0 < b and neg(x0) < min(neg(a), neg(b)):
+            # the scan already brackets the optimum (the grid point beats both neighbours): Brent's
+            # parabolic steps from that bracket (its points are cached) need ~half the evaluations
+            # of a bounded search that starts afresh; same tolerance
+            res = minimize_scalar(neg, bracket=(a, x0, b), method="brent",
+                                  options={"xtol": xtol / (10.0 * max(abs(x0), 1.0))})
+            x_b = float(res.x)
+            if not a <= x_b <= b:       # never: Brent stays inside its bracket
+                x_b = x0
+            cands.insert(0, x_b)
+        else:
+            res = minimize_scalar(neg, bounds=(a, b), method="bounded", options={"xatol": xtol})
+            cands.insert(0, float(res.x))
     sp_opt = min(cands, key=lambda s: (neg(s), cands.index(s)))
     p = ev.at(sp_opt)
     if not math.isfinite(value(p)):

@@ -92,7 +92,29 @@ def register(sub) -> None:
                          "each window uses only the data up to its end, as the gateway would)")
     rp.add_argument("--save-state", default=None, metavar="STATE_DIR",
                     help="also save the initial, dp_clean and last fouling results as state there")
+    rp.add_argument("--workers", type=_workers, default=1, metavar="N",
+                    help="processes for the windows' analysis: 1 (default) in this process, N > 1 a "
+                         "process pool of N; the results are identical")
     rp.set_defaults(func=cmd_replay)
+
+
+def _workers(text: str) -> int:
+    import argparse
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of workers >= 1, got {text!r}") from None
+    if not 1 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"expected a whole number of workers 1..256, got {n}")
+    return n
+
+
+def process_pool(workers: int):
+    """The stdlib process pool of ``replay --workers N`` (spawned processes: each builds its own
+    CoolProp state and property tables; nothing but the windows' tasks is shipped)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
 
 
 def _csv_format(p) -> None:
@@ -430,9 +452,9 @@ def cmd_fit_surrogate(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    import os
     from pathlib import Path
     from edge.plantfile import PlantFileError
+    from edge.replaydir import write_replay_dir
     from edge.statefiles import (COMPRESSORS, DP_CLEAN, FOULING_CALIBRATION, INITIAL_CALIBRATION,
                                  SURROGATE_TRACKER, StateError, write_state)
     from model.calibration import CalibrationError
@@ -460,37 +482,27 @@ def cmd_replay(args) -> int:
                                               hindsight=True if args.hindsight else None)
         iw = parse_window(args.initial_window) if args.initial_window else None
         chain_settings = ChainSettings.from_config(params.extra, cip_price=price, optimize=settings.optimize,
-                                                   min_samples=int(settings.min_samples))
+                                                   min_samples=int(settings.min_samples),
+                                                   use_surrogate=bool(settings.surrogate))
         if h_days is not None:
             chain_settings = dataclasses.replace(
                 chain_settings, cip=dataclasses.replace(chain_settings.cip, horizon_days=float(h_days)))
         if price is not None:
             _check_price_cover(price, hist)
-        res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"),
-                     chain_settings=chain_settings)
+        workers = getattr(args, "workers", 1)
+        if workers > 1:
+            with process_pool(workers) as pool:
+                res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"),
+                             chain_settings=chain_settings, executor=pool)
+        else:
+            res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"),
+                         chain_settings=chain_settings)
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips),
-                            ("forecast.csv", res.forecast), ("samples.csv", res.samples)):
-            if frame is None:
-                continue
-            tmp = out / f".{name}.tmp"
-            frame.to_csv(tmp, index=False, float_format="%.10g")
-            os.replace(tmp, out / name)
-        meta = {**res.meta, "plant": str(args.config), "history": str(args.history),
-                "hp_edge_version": _version()}
-        write_state("meta.json", meta, out)
-        if res.compressors is not None:
-            write_state(COMPRESSORS, res.compressors, out)
-        if res.surrogate_tracker is not None:
-            write_state(SURROGATE_TRACKER, res.surrogate_tracker, out)
-        text = res.summary()
+        header = ""
         if skipped or nn:
-            text = (f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}\n"
-                    + text)
-        (out / "summary.txt").write_text(text + "\n", encoding="utf-8")
-        write_state(INITIAL_CALIBRATION, res.initial.to_dict(), out)
-        write_state(DP_CLEAN, res.dp_clean.to_dict(), out)
+            header = f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}"
+        text = write_replay_dir(res, out, {"plant": str(args.config), "history": str(args.history),
+                                           "hp_edge_version": _version(), "workers": workers}, header)
         if args.save_state:
             write_state(INITIAL_CALIBRATION, res.initial.to_dict(), args.save_state)
             write_state(DP_CLEAN, res.dp_clean.to_dict(), args.save_state)

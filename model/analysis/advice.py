@@ -159,6 +159,40 @@ def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> P
     return params.replace(**kw)
 
 
+@dataclass
+class AdviceDraft:
+    """The advice of one window up to the dead band (``draft_advice``): everything that does not
+    depend on the previous recommendation. Plain data (picklable): replay computes drafts in
+    parallel and settles them in window order (``settle_advice``), the gateway does both at once."""
+    settings: AdviceSettings
+    amb: float                       # ambient pressure [bar]
+    data: pd.DataFrame               # the whole-window check rows (canonical inputs)
+    rows: pd.DataFrame               # representative points and their weights
+    w: np.ndarray
+    adaptive: PlantParams
+    learner: CompressorLearner | None
+    offsets: dict                    # model - measured compressor operating points, per stage
+    lo: float                        # set-point range [bar(g)]
+    hi: float
+    actual: float                    # the window's actual set point (mean) [bar(g)]
+    sp_opt: float                    # the model optimum within the trusted region
+    hs_saturated_opt: bool
+    COP_opt_rep: float               # representative points' COP at sp_opt (dead-band gain)
+    ref: Point                       # check rows at the actual set points
+    opt: Point                       # check rows at sp_opt
+    gm_p: Point                      # check rows at the geometric mean
+    gm: float                        # geometric mean sqrt(p_e p_c) [bar a]
+    sd_opt: float                    # sd of the expected gain at sp_opt over the curve draws [%]
+    draws_ref: list                  # per draw: representative COP at the actual set points (or None)
+    R_th_f_se_K_per_kW: float
+    reasons: list                    # low-confidence reasons independent of the recommendation
+    dcop_step: float                 # COP change of a step to sp_opt [%]
+    coverage_share: float
+    curve_residual: dict
+    evaluations: int
+    optimizer: str = "search"        # "search", or "surrogate" when sp_override was taken
+
+
 def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
            settings: AdviceSettings, previous_rec_barg: float | None = None,
            coverage_share: float = 1.0, curve_residual: dict | None = None,
@@ -169,8 +203,33 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
     need the measured side), and ``measured`` the per-sample compressor operating points
     ({"pi_LS": array, "n_LS": array, ...}, NaN where unknown). ``sp_override``: the optimum from
     elsewhere (the qualified surrogate, bar(g)) in place of the search, used when it solves and lies
-    in the trusted region (otherwise the search runs, and the note says why). Raises
-    OptimizationError when nothing can be optimised."""
+    in the trusted region (otherwise the search runs). Raises OptimizationError when nothing can be
+    optimised. ``settle_advice(draft_advice(...), previous_rec_barg)``."""
+    return settle_advice(draft_advice(data, adaptive, learner, settings, coverage_share, curve_residual,
+                                      R_th_f_se_K_per_kW, measured, sp_override), previous_rec_barg)
+
+
+def _draw_params(adaptive: PlantParams, learner: CompressorLearner, s: AdviceSettings,
+                 R_th_f_se_K_per_kW: float) -> list[PlantParams]:
+    """The adaptive model under each uncertainty draw of the learned curves (and of R_th,f), from
+    the fixed seed: the same window always gives the same draws."""
+    rng = np.random.default_rng(s.seed)
+    out = []
+    for d in learner.draws(int(s.uncertainty_draws), rng):
+        par = _with_draw(adaptive, learner, d)
+        if R_th_f_se_K_per_kW and math.isfinite(R_th_f_se_K_per_kW):
+            par = par.replace(R_th_f=max(0.0, par.R_th_f + 1e-3 * R_th_f_se_K_per_kW
+                                         * float(rng.standard_normal())))
+        out.append(par)
+    return out
+
+
+def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
+                 settings: AdviceSettings, coverage_share: float = 1.0,
+                 curve_residual: dict | None = None, R_th_f_se_K_per_kW: float = 0.0,
+                 measured: dict | None = None, sp_override: float | None = None) -> AdviceDraft:
+    """The model optimum of the window and everything about it (see ``advise``) except the dead
+    band against the previous recommendation, which ``settle_advice`` applies."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
@@ -218,48 +277,31 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
                 sp_opt = p_m - amb
     if sp_opt is None:
         sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
-    # dead band against the previous recommendation (if it is still a valid candidate here)
-    sp_rec, note = sp_opt, ""
-    if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
-        p_prev = ev.at(previous_rec_barg)
-        if p_prev.ok and (feasible is None or feasible(p_prev)):
-            gain = 100.0 * (ev.at(sp_opt).COP / p_prev.COP - 1.0)
-            if gain < s.dead_band_pct:
-                sp_rec = previous_rec_barg
-                note = f"kept the previous recommendation (the optimum gains {gain:.3f} % more)"
-    rec = full.at(sp_rec)
-    opt = rec if sp_rec == sp_opt else full.at(sp_opt)
-    if not (rec.ok and opt.ok):
-        bad = rec.frame if not rec.ok else opt.frame
-        why = bad.loc[~np.isin(bad["status"].to_numpy(), SOLVED), "reason"].astype(str)
-        raise OptimizationError(f"the recommended set point {sp_rec:.2f} bar(g) does not solve every "
-                                f"sample of the window ({len(why)} of {len(bad)}: {why.iloc[0]})")
-    dcop = 100.0 * (rec.COP / ref.COP - 1.0)
-    dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
+    opt = full.at(sp_opt)
+    if not opt.ok:
+        why = opt.frame.loc[~np.isin(opt.frame["status"].to_numpy(), SOLVED), "reason"].astype(str)
+        raise OptimizationError(f"the recommended set point {sp_opt:.2f} bar(g) does not solve every "
+                                f"sample of the window ({len(why)} of {len(opt.frame)}: {why.iloc[0]})")
     dcop_step = 100.0 * (opt.COP / ref.COP - 1.0)
-    # uncertainty of the expected gain: draws of the learned curves (and of R_th,f)
-    sd = math.nan
+    # uncertainty of the expected gain at the optimum: draws of the learned curves (and of R_th,f);
+    # the draws' COP at the actual set points is kept for a recommendation the dead band keeps
+    sd_opt, draws_ref = math.nan, []
     if learner is not None and s.uncertainty_draws >= 2:
-        rng = np.random.default_rng(s.seed)
-        draws = learner.draws(int(s.uncertainty_draws), rng)
         vals = []
-        for d in draws:
-            par = _with_draw(adaptive, learner, d)
-            if R_th_f_se_K_per_kW and math.isfinite(R_th_f_se_K_per_kW):
-                par = par.replace(R_th_f=max(0.0, par.R_th_f + 1e-3 * R_th_f_se_K_per_kW
-                                             * float(rng.standard_normal())))
-            e = Evaluator(rows, w, par)
-            a, b = e.at(sp_rec), e.at(None)
+        for par in _draw_params(adaptive, learner, s, R_th_f_se_K_per_kW):
+            e = Evaluator(rows, w, par, guess_from=ev)
+            b, a = e.at(None), e.at(sp_opt)
+            draws_ref.append(b.COP if b.ok else None)
             if a.ok and b.ok:
                 vals.append(100.0 * (a.COP / b.COP - 1.0))
         if len(vals) >= 2:
-            sd = float(np.std(vals, ddof=1))
+            sd_opt = float(np.std(vals, ddof=1))
     p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
     p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
     gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
     gm_p = full.at(min(max(gm - amb, lo), hi))
-    # confidence
-    resid = curve_residual or {}
+    # low-confidence reasons that do not depend on the recommendation
+    resid = dict(curve_residual or {})
     reasons = []
     if learner is None or not all(learner.learned(st, "eta_is") for st in STAGES):
         reasons.append("compressor curves not learned yet from enough operating data")
@@ -290,6 +332,60 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         reasons.append(f"the model's optimum lies beyond the region the learned curves cover "
                        f"(a step to {sp_opt:.2f} bar(g) would gain {dcop_step:+.2f} %; operation "
                        f"there teaches the curves the way on)")
+    return AdviceDraft(
+        settings=s, amb=amb, data=data, rows=rows, w=w, adaptive=adaptive, learner=learner,
+        offsets=offsets, lo=lo, hi=hi, actual=actual, sp_opt=float(sp_opt),
+        hs_saturated_opt=bool(p_opt.hs_saturated), COP_opt_rep=float(p_opt.COP), ref=ref, opt=opt,
+        gm_p=gm_p, gm=gm, sd_opt=sd_opt, draws_ref=draws_ref, R_th_f_se_K_per_kW=R_th_f_se_K_per_kW,
+        reasons=reasons, dcop_step=dcop_step, coverage_share=float(coverage_share), curve_residual=resid,
+        evaluations=ev.evals + full.evals, optimizer=optimizer)
+
+
+def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) -> AdviceResult:
+    """The advice from its draft and the previous confident recommendation: the dead band (keep the
+    previous recommendation unless the optimum gains more than ``dead_band_pct`` of COP over it in
+    this window's conditions), the expected changes at the recommendation and the confidence.
+    Model runs happen here only when the dead band keeps the previous recommendation."""
+    d, s = draft, draft.settings
+    sp_opt, lo, hi, amb = d.sp_opt, d.lo, d.hi, d.amb
+    sp_rec, note = sp_opt, ""
+    evaluations = d.evaluations
+    ev = None
+    if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
+        ev = Evaluator(d.rows, d.w, d.adaptive)
+        p_prev = ev.at(previous_rec_barg)
+        feasible = _feasible(d.learner, d.adaptive, d.offsets)
+        if p_prev.ok and (feasible is None or feasible(p_prev)):
+            gain = 100.0 * (d.COP_opt_rep / p_prev.COP - 1.0)
+            if gain < s.dead_band_pct:
+                sp_rec = previous_rec_barg
+                note = f"kept the previous recommendation (the optimum gains {gain:.3f} % more)"
+        evaluations += ev.evals
+    ref, opt = d.ref, d.opt
+    if sp_rec == sp_opt:
+        rec, sd = opt, d.sd_opt
+    else:
+        full = Evaluator(d.data, np.ones(len(d.data)), d.adaptive)
+        rec = full.at(sp_rec)
+        evaluations += full.evals
+        if not rec.ok:
+            why = rec.frame.loc[~np.isin(rec.frame["status"].to_numpy(), SOLVED), "reason"].astype(str)
+            raise OptimizationError(f"the recommended set point {sp_rec:.2f} bar(g) does not solve every "
+                                    f"sample of the window ({len(why)} of {len(rec.frame)}: {why.iloc[0]})")
+        sd = math.nan
+        if d.learner is not None and s.uncertainty_draws >= 2:
+            vals = []
+            for par, b in zip(_draw_params(d.adaptive, d.learner, s, d.R_th_f_se_K_per_kW), d.draws_ref):
+                a = Evaluator(d.rows, d.w, par, guess_from=ev).at(sp_rec)
+                if a.ok and b is not None:
+                    vals.append(100.0 * (a.COP / b - 1.0))
+            if len(vals) >= 2:
+                sd = float(np.std(vals, ddof=1))
+    dcop = 100.0 * (rec.COP / ref.COP - 1.0)
+    dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
+    gm, gm_p = d.gm, d.gm_p
+    reasons = list(d.reasons)
+    actual = d.actual
     sd_eff = sd if math.isfinite(sd) else math.inf
     if not reasons and not dcop > s.confidence_k * sd_eff:
         if abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct:
@@ -314,6 +410,6 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
         dQ_sink_model_opt_pct=100.0 * (opt.Q_sink_kW / ref.Q_sink_kW - 1.0),
         dCOP_gm_pct=100.0 * (rec.COP / gm_p.COP - 1.0) if gm_p.ok else math.nan,
         dQ_sink_gm_pct=100.0 * (rec.Q_sink_kW / gm_p.Q_sink_kW - 1.0) if gm_p.ok else math.nan,
-        COP_actual_model=ref.COP, hs_saturated=bool(p_opt.hs_saturated) and sp_rec == sp_opt,
-        coverage_share=float(coverage_share), curve_residual=dict(resid), n_samples=len(data),
-        n_eval_rows=len(rows), evaluations=ev.evals + full.evals, optimizer=optimizer)
+        COP_actual_model=ref.COP, hs_saturated=bool(d.hs_saturated_opt) and sp_rec == sp_opt,
+        coverage_share=float(d.coverage_share), curve_residual=dict(d.curve_residual),
+        n_samples=len(d.data), n_eval_rows=len(d.rows), evaluations=evaluations, optimizer=d.optimizer)

@@ -36,7 +36,7 @@ from ..measured import derived
 from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
-from .advice import AdviceResult, AdviceSettings, advise
+from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, settle_advice
 from .cip import CipSettings, ForecastState, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
@@ -214,6 +214,40 @@ class WindowResult:
 ROW_COLUMNS = tuple(k for k in WindowResult.__dataclass_fields__ if k != "detail")
 
 
+@dataclass
+class WindowTask:
+    """One window after pass 1 (``AnalysisChain.prepare``): what the expensive analysis needs, and
+    nothing of the chain's state (picklable; CoolProp state is built where it runs)."""
+    res: WindowResult                           # filled as far as pass 1 got
+    data: pd.DataFrame                          # the window's samples (with a timestamp column)
+    fixed: PlantParams
+    learner: CompressorLearner | None = None    # after this window's update
+    der: pd.DataFrame | None = None             # measured side (model.measured.derived + inputs)
+    obs: pd.DataFrame | None = None             # compressor observations
+    T_out_sp_C: float | None = None             # the LS controller's T_source,out set point
+    ls_saturated: np.ndarray | None = None      # samples with the LS at its speed limit
+    fouling: CalibrationResult | None = None    # calibrated in pass 1 (change penalty)
+    samples: bool = False                       # return the per-sample series (replay)
+    done: bool = False                          # res is final (skipped or failed in pass 1)
+    tracker: SurrogateTracker | None = None     # the qualified surrogate as of pass 1 (optimizer: auto)
+
+
+@dataclass
+class WindowPartial:
+    """One window after pass 2 (``AnalysisChain.analyse``)."""
+    res: WindowResult
+    fouling: CalibrationResult | None = None
+    cond_factor: float | None = None
+    draft: AdviceDraft | None = None            # the advice up to its dead band
+    adaptive: PlantParams | None = None         # the window's adaptive model (calibration succeeded)
+    cost_in: pd.DataFrame | None = None         # the window's inputs as the cost of fouling runs them
+    der: pd.DataFrame | None = None             # the measured side
+    ev_rows: pd.DataFrame | None = None         # the advice's representative rows and weights
+    ev_w: np.ndarray | None = None
+    surrogate: dict | None = None               # the surrogate's prediction taken in place of the search
+    samples: pd.DataFrame | None = None         # per-sample model series (replay's samples.csv)
+
+
 def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
     ok = np.isfinite(sim) & np.isfinite(meas)
     if ok.sum() == 0 or not np.mean(meas[ok]) > 0:
@@ -261,35 +295,49 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     fixed model's p_c off by up to a bar at conditions other than commissioning's (the water-side
     film changes with the sink flow): every pressure ratio the learned compressor curves are read at
     moves with it. p_c is measured every minute, so the chain corrects it per window like R_th,f for
-    the evaporator. A secant on ln k (p_c falls as k rises), k within [0.3, 3]; (NaN, err) when it
-    does not converge."""
+    the evaporator. A secant on ln k (p_c falls as k rises; first step from a typical slope of
+    COND_SLOPE_BAR bar per unit of ln k), k within [0.3, 3], halving a step back toward the last
+    solved k where the model cannot solve every point; (NaN, err) when it does not converge. The
+    answer depends on the start ``k0`` only within ``tol_bar`` (the chain starts every window at 1,
+    so windows are independent of each other)."""
     parts = groups(der, points)
     rows, w = representative(der, points, parts)
     meas = der["p_c_bar"].to_numpy(dtype=float)
     target = float(np.nansum([w[i] * np.nanmean(meas[g]) for i, g in enumerate(parts)]) / w.sum())
+    lo, hi = math.log(0.3), math.log(3.0)
 
-    def err(k: float) -> float:
-        f = simulate_batch(rows, scale_condenser(params, k), columns=("p_c_bar",))
+    def err(x: float) -> float:
+        f = simulate_batch(rows, scale_condenser(params, math.exp(x)), columns=("p_c_bar",))
         if not solved_mask(f).all():
             return math.nan
         return float(np.sum(w * f["p_c_bar"].to_numpy(dtype=float)) / w.sum()) - target
 
-    e1 = err(1.0)
+    e1 = err(0.0)
     if not math.isfinite(e1) or not math.isfinite(target):
         return math.nan, e1
     x0, f0 = 0.0, e1
-    x1 = math.log(k0) if abs(math.log(k0)) > 1e-6 else 0.05 * (1 if e1 > 0 else -1)
-    f1 = err(math.exp(x1))
-    for _ in range(20):
+    if abs(f0) < tol_bar:
+        return 1.0, e1
+    x1 = math.log(k0) if abs(math.log(k0)) > 1e-6 else min(max(e1 / COND_SLOPE_BAR, -0.5), 0.5)
+    for _ in range(COND_MAX_ITER):
+        f1 = err(x1)
+        backs = 0
+        while not math.isfinite(f1) and backs < 6:      # unsolvable there: back toward the last k
+            x1 = 0.5 * (x0 + x1)
+            f1 = err(x1)
+            backs += 1
         if not math.isfinite(f1):
             return math.nan, e1
         if abs(f1) < tol_bar:
             return math.exp(x1), e1
         if f1 == f0:
             break
-        x0, f0, x1 = x1, f1, min(max(x1 - f1 * (x1 - x0) / (f1 - f0), math.log(0.3)), math.log(3.0))
-        f1 = err(math.exp(x1))
+        x0, f0, x1 = x1, f1, min(max(x1 - f1 * (x1 - x0) / (f1 - f0), lo), hi)
     return math.nan, e1
+
+
+COND_SLOPE_BAR = 9.0      # typical -dp_c/d(ln k) [bar]: the first secant step of condenser_factor
+COND_MAX_ITER = 20
 
 
 class AnalysisChain:
@@ -336,39 +384,56 @@ class AnalysisChain:
         """After a CIP or a long stop: the change penalty does not reach across it."""
         state.fouling_previous = None
 
-    def cip(self, state: ChainState, start, end, detected_by: str = "cip") -> bool:
+    def cip(self, state: ChainState, start, end, detected_by: str = "cip", segment: bool = True) -> bool:
         """A CIP from ``start`` to ``end`` (epoch s, ISO text or Timestamps) ended: what it removed
         is remembered (the removal share, the interval, the ending cycle's law for the next fits),
         the forecast and the cumulated cost restart at ``end``, and a new segment begins. Replay
         calls it at each detected CIP, the gateway when it sees one. False (nothing changes) for a
-        CIP that ended at or before the last reset."""
+        CIP that ended at or before the last reset. ``segment=False``: the caller starts the new
+        segment itself (replay does it in pass 1, ahead of pass 3)."""
         if state.forecast.cip(_epoch(start), _epoch(end), detected_by, self.s.cip):
-            self.new_segment(state)
+            if segment:
+                self.new_segment(state)
             return True
         return False
 
     # ---------------------------------------------------------------------------- window
     def window(self, data: pd.DataFrame, state: ChainState) -> WindowResult:
-        """Analyse one window of usable samples; updates ``state`` (learner, previous values)."""
+        """Analyse one window of usable samples; updates ``state`` (learner, previous values).
+
+        The three passes in one: ``finish(analyse(prepare(data, state)), state)``."""
+        return self.finish(self.analyse(self.prepare(data, state)), state)
+
+    def prepare(self, data: pd.DataFrame, state: ChainState, samples: bool = False) -> WindowTask:
+        """Pass 1 (cheap, in window order): the measured side, the compressor observations and the
+        learner's update, the heat-balance check, the LS controller's set point and, with a change
+        penalty, the fouling calibration. Returns the window's task: plain data that ``analyse``
+        turns into the window's results without ``state`` (so tasks can run in any process).
+        ``samples``: the task also returns the per-sample model series (replay's samples.csv)."""
         ts = _times(data)
         data = data.reset_index(drop=True)
         n = len(data)
         res = WindowResult(window_start=ts[0].isoformat() if n else "",
                            window_end=ts[-1].isoformat() if n else "",
                            t_end=float(ts[-1].timestamp()) if n else math.nan, n_samples=n)
+        task = WindowTask(res=res, data=data.assign(timestamp=ts), fixed=state.fixed,
+                          learner=state.learner, samples=samples,
+                          tracker=state.tracker if self.s.use_surrogate else None)
         if n < self.s.min_samples:
             res.status = f"skipped: {n} usable samples, {self.s.min_samples} needed"
-            return res
+            task.done = True
+            return task
         fixed = state.fixed
         der = derived(data, fixed)
         for c in INPUT_COLUMNS:
             der[c] = pd.to_numeric(data[c], errors="coerce").to_numpy(dtype=float)
+        task.der = der
         res.p_m_sp_actual_barg = float(der["p_m_sp"].mean())
         learner = state.learner
         # ---- compressors: observations, coverage before this window, then learn from it
-        obs = None
         if learner is not None:
-            obs = observe(data.assign(timestamp=ts), fixed, self.s.learning)
+            obs = observe(task.data, fixed, self.s.learning)
+            task.obs = obs
             cov = []
             for st in STAGES:
                 pi, nn = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
@@ -383,45 +448,96 @@ class AnalysisChain:
             res.drive_factor_LS = learner.drive_factor("LS")
             res.drive_factor_HS = learner.drive_factor("HS")
             res.T_c_location = learner.T_c_location()
-        base = learner.apply(fixed) if learner is not None else fixed
         # ---- heat balance of the window (shaft power: the electric power over the drive factor)
-        W_shaft = (pd.to_numeric(data["W_LS"], errors="coerce") / base.comp_LS.drive_factor
-                   + pd.to_numeric(data["W_HS"], errors="coerce") / base.comp_HS.drive_factor)
+        d_LS = learner.drive_factor("LS") if learner is not None else fixed.comp_LS.drive_factor
+        d_HS = learner.drive_factor("HS") if learner is not None else fixed.comp_HS.drive_factor
+        W_shaft = (pd.to_numeric(data["W_LS"], errors="coerce") / d_LS
+                   + pd.to_numeric(data["W_HS"], errors="coerce") / d_HS)
         closure = 100.0 * (der["Q_sink_kW"] - der["Q_source_kW"] - W_shaft.to_numpy()) / der["Q_sink_kW"]
         res.heat_balance_pct = float(np.nanmedian(closure))
         if not abs(res.heat_balance_pct) <= self.s.heat_balance_limit_pct:
             res.status = (f"failed: measured heat balance does not close ({res.heat_balance_pct:+.1f} % "
                           f"of the heat output, limit {self.s.heat_balance_limit_pct:g} %): check the "
                           f"water flow meters and temperatures")
-            return res
-        # ---- fouling calibration
+            task.done = True
+            return task
+        # ---- the LS speed controller's set point: T_source,out where the LS is not at its limit
+        if self.s.optimize or self.s.cip.enabled:
+            n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
+                if "N_LS" in data.columns else np.full(len(der), np.nan)
+            n_max = fixed.comp_LS.N_max
+            free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)
+            if free.sum() >= 10:
+                state.T_out_sp_C = float(np.median(der["T_source_out"].to_numpy(dtype=float)[free]))
+            res.T_source_out_sp_C = state.T_out_sp_C if state.T_out_sp_C is not None else math.nan
+            task.T_out_sp_C = state.T_out_sp_C
+            sat = np.isfinite(n_ls) & (n_ls >= n_max - LS_SATURATED_RPM)
+            res.ls_saturated_share = float(sat.mean())
+            task.ls_saturated = sat
+        # ---- fouling calibration here only when it depends on the previous window's (penalty)
+        if self.spec.change_penalty > 0:
+            base = learner.apply(fixed) if learner is not None else fixed
+            fc = self._calibrate(res, der, base, state.fouling_previous)
+            task.fouling = fc
+            if fc is not None:
+                state.fouling_previous = fc.params
+            else:
+                task.done = True
+        return task
+
+    def _calibrate(self, res: WindowResult, der: pd.DataFrame, base: PlantParams,
+                   previous: dict | None) -> CalibrationResult | None:
+        """The window's fouling calibration; None (and ``res.status`` failed) when it fails."""
         cal = der[list(INPUT_COLUMNS) + sorted({m for m, _ in TARGETS.values()} & set(der.columns))]
         try:
-            fc = calibrate(cal, base, self.spec, previous=state.fouling_previous,
+            fc = calibrate(cal, base, self.spec, previous=previous,
                            window=(res.window_start, res.window_end))
         except (CalibrationError, ValueError, ArithmeticError) as exc:
             res.status = f"failed: fouling calibration: {exc}"
-            return res
+            return None
         if not fc.success or not all(math.isfinite(v) for v in fc.params.values()):
             res.status = f"failed: fouling calibration: {fc.message}"
             res.detail["calibration"] = fc.to_dict()
-            return res
+            return None
+        return fc
+
+    def analyse(self, task: WindowTask) -> WindowPartial:
+        """Pass 2 (the expensive part, any order, any process): fouling calibration, the condenser
+        unit's factor, the model figures, the compressor residuals and the advice up to its dead
+        band (``model.analysis.advice.draft_advice``). Uses nothing but the task."""
+        res = task.res
+        out = WindowPartial(res=res)
+        try:
+            if not task.done:
+                self._analyse(task, out)
+        finally:
+            if task.samples:
+                out.samples = _window_samples(task, res)
+                res.detail.pop("model_series", None)
+                res.detail.pop("adaptive_params", None)
+        return out
+
+    def _analyse(self, task: WindowTask, out: WindowPartial) -> None:
+        res, der, fixed, learner, obs = task.res, task.der, task.fixed, task.learner, task.obs
+        base = learner.apply(fixed) if learner is not None else fixed
+        # ---- fouling calibration
+        fc = task.fouling
+        if fc is None:
+            fc = self._calibrate(res, der, base, None)
+            if fc is None:
+                return
         res.calibration_ok = True
-        state.last_fouling = fc
-        if self.spec.change_penalty > 0:
-            state.fouling_previous = fc.params
+        out.fouling = fc
         adaptive = fc.apply(base)
         # the condenser unit's conductance to this window's measured condensing pressure
         if self.s.condenser_correction:
-            k, err = condenser_factor(der, adaptive, state.cond_factor or 1.0,
-                                      self.s.advice.representative_points)
+            k, err = condenser_factor(der, adaptive, 1.0, self.s.advice.representative_points)
             res.CF_cond_window = k
             res.p_c_error_bar = err
             if math.isfinite(k):
-                state.cond_factor = k
+                out.cond_factor = k
                 adaptive = scale_condenser(adaptive, k)
                 base = scale_condenser(base, k)
-                res.detail["adaptive_params"] = adaptive
         res.detail["calibration"] = fc.to_dict()
         res.detail["adaptive_params"] = adaptive
         self._fouling_figures(res, fc, fixed, adaptive, der)
@@ -437,28 +553,18 @@ class AnalysisChain:
                     setattr(res, f"eta_is_{st}_resid", float(np.mean(e[ok] - curve)))
                     setattr(res, f"eta_is_{st}_drift_pct",
                             learner.drift_pct(st, float(np.median(pi[ok])), float(np.median(nn[ok]))))
-        # the LS speed controller's set point: T_source,out where the LS is not at its limit.
-        # Where it is (T_source,out floating above the set point), the advice and the cost of
-        # fouling start from the set point, so that a set point giving the LS more capacity can
-        # bring T_source,out down, and a cleaner evaporator shows the heat fouling cost
+        # the LS speed controller's set point (pass 1): where the LS is at its speed limit
+        # (T_source,out floating above the set point), the advice and the cost of fouling start
+        # from the set point, so that a set point giving the LS more capacity can bring
+        # T_source,out down, and a cleaner evaporator shows the heat fouling cost
         adv_in = der
-        n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
-            if "N_LS" in data.columns else np.full(len(der), np.nan)
-        n_max = base.comp_LS.N_max
-        free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)
-        if free.sum() >= 10:
-            state.T_out_sp_C = float(np.median(der["T_source_out"].to_numpy(dtype=float)[free]))
-        res.T_source_out_sp_C = state.T_out_sp_C if state.T_out_sp_C is not None else math.nan
-        sat = np.isfinite(n_ls) & (n_ls >= n_max - LS_SATURATED_RPM)
-        res.ls_saturated_share = float(sat.mean())
-        if sat.any() and state.T_out_sp_C is not None:
+        sat = task.ls_saturated
+        if sat is not None and sat.any() and task.T_out_sp_C is not None:
             adv_in = der.copy()
             t_out = adv_in["T_source_out"].to_numpy(dtype=float)
-            adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, state.T_out_sp_C), t_out)
-        # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
-        if self.s.cip.enabled:
-            self._forecast(res, adv_in, der, fixed, adaptive, state)
-        # ---- advice
+            adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, task.T_out_sp_C), t_out)
+        out.adaptive, out.cost_in, out.der = adaptive, adv_in, der     # pass 3: forecast, tracker
+        # ---- advice up to its dead band
         if self.s.optimize:
             measured = None
             if obs is not None:
@@ -467,16 +573,36 @@ class AnalysisChain:
             # the surrogate fitted from earlier windows' optima, once it qualifies (issue #8 item 7)
             ev_rows, ev_w = self._evaluation_rows(adv_in)
             override, used = None, None
-            if self.s.use_surrogate and state.tracker is not None:
-                pred = state.tracker.predict_setpoint(ev_rows, ev_w, adaptive)
+            if self.s.use_surrogate and task.tracker is not None:
+                pred = task.tracker.predict_setpoint(ev_rows, ev_w, adaptive)
                 if pred is not None:
                     override, used = pred
             try:
-                adv = advise(adv_in, adaptive, learner, self.s.advice, previous_rec_barg=state.last_rec_barg,
-                             coverage_share=res.coverage_share if learner is not None else 1.0,
-                             curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
-                             R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured,
-                             sp_override=override)
+                out.draft = draft_advice(
+                    adv_in, adaptive, learner, self.s.advice,
+                    coverage_share=res.coverage_share if learner is not None else 1.0,
+                    curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
+                    R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override)
+                out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
+            except (OptimizationError, ValueError, ArithmeticError) as exc:
+                res.status = f"failed: set-point optimization: {exc}"
+
+    def finish(self, partial: WindowPartial, state: ChainState) -> WindowResult:
+        """Pass 3 (in window order): what depends on the windows before — the fouling forecast,
+        the cost of fouling and the CIP plan (issue 10), the dead band on the previous confident
+        recommendation, the surrogate tracker — and the state handed on."""
+        res = partial.res
+        if partial.fouling is not None:
+            state.last_fouling = partial.fouling
+        if partial.cond_factor is not None:
+            state.cond_factor = partial.cond_factor
+        # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
+        if self.s.cip.enabled and partial.adaptive is not None:
+            self._forecast(res, partial.cost_in, partial.der, state.fixed, partial.adaptive, state)
+        if partial.draft is not None and res.ok:
+            used = partial.surrogate
+            try:
+                adv = settle_advice(partial.draft, state.last_rec_barg)
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
                 return res
@@ -487,8 +613,8 @@ class AnalysisChain:
                 res.detail["surrogate"] = used
             if adv.confident:
                 state.last_rec_barg = adv.p_m_sp_rec_barg
-            if state.tracker is not None:
-                state.tracker.window(ev_rows, ev_w, adaptive, res.t_end)
+            if state.tracker is not None and partial.ev_rows is not None:
+                state.tracker.window(partial.ev_rows, partial.ev_w, partial.adaptive, res.t_end)
         return res
 
     def _evaluation_rows(self, adv_in: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
@@ -602,3 +728,30 @@ class AnalysisChain:
         res.advice_confident = adv.confident
         res.advice_note = adv.note
         res.detail["advice"] = {k: v for k, v in asdict(adv).items()}
+
+
+def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
+    """Per-sample model series of one window (replay's samples.csv): the model figures' COP and heat
+    output (on the evenly spaced figure rows) and the learned eta_is curve at each sample."""
+    data = task.data
+    out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
+    out["window_start"] = res.window_start
+    series = res.detail.get("model_series")
+    if series is not None:
+        for kind in ("fixed", "adaptive"):
+            f = series[kind]
+            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}")):
+                v = np.full(len(out), np.nan)
+                v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
+                out[name] = v
+    learner = task.learner
+    if learner is not None:
+        obs = task.obs if task.obs is not None else observe(data, task.fixed, learner.s)
+        for st in STAGES:
+            pi, n = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+            ok = np.isfinite(pi) & np.isfinite(n)
+            v = np.full(len(obs), np.nan)
+            if ok.any():
+                v[ok] = learner.eta_is(st, pi[ok], n[ok])
+            out[f"eta_is_{st}_model"] = v
+    return out

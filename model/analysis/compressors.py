@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from ..fluid import Fluid, PropertyError, get_fluid
+from ..proptable import get_tables
 from ..params import POLY_BASIS, Compressor, PlantParams
 from ..units import BAR, C_to_K, m3h_to_m3s
 
@@ -141,6 +142,73 @@ def eta_is_measured(fl: Fluid, p_suc: float, T_suc: float, p_dis: float, T_dis: 
     return (st[3] - st[0]) / (st[2] - st[0])
 
 
+def stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) -> dict:
+    """``stage_states`` for arrays from the property tables (``model.proptable``): h_suc, s_suc,
+    rho_suc, h_dis, h_is [J/kg, J/kg/K, kg/m^3], ``sup`` (the discharge is superheated: p_dis >
+    p_suc and T_dis > T_sat(p_dis) + 0.5 K; elsewhere stage_states returns None) and ``handled``
+    (the tables answered; other rows need the scalar ``stage_states``)."""
+    sat = tab.sat(p_suc)
+    near = T_suc <= sat.T + 0.05
+    h_v, s_v, r_v = tab.vapour(p_suc, T_suc)
+    h_suc = np.where(near, sat.h_g, h_v)
+    s_suc = np.where(near, sat.s_g, s_v)
+    rho_suc = np.where(near, sat.rho_g, r_v)
+    T_sat_d = tab.T_sat(p_dis)
+    sup = (p_dis > p_suc) & (T_dis > T_sat_d + 0.5)
+    h_dis = tab.vapour(p_dis, T_dis)[0]
+    h_is = tab.isentropic(p_dis, s_suc)[0]
+    handled = (np.isfinite(sat.T) & np.isfinite(T_suc) & np.isfinite(h_suc) & np.isfinite(T_sat_d)
+               & np.isfinite(T_dis) & (~sup | (np.isfinite(h_dis) & np.isfinite(h_is))))
+    return {"h_suc": h_suc, "s_suc": s_suc, "rho_suc": rho_suc, "h_dis": h_dis, "h_is": h_is,
+            "sup": sup, "handled": handled}
+
+
+def eta_is_arrays(tab, fl: Fluid, p_suc, T_suc, p_dis, T_dis) -> tuple[np.ndarray, np.ndarray]:
+    """``eta_is_measured`` for arrays: (eta_is, property_failed) — the tables where they answer,
+    ``eta_is_measured`` (HEOS) row by row elsewhere; property_failed marks rows where HEOS raised."""
+    n = len(p_suc)
+    eta = np.full(n, np.nan)
+    failed = np.zeros(n, dtype=bool)
+    fin = np.isfinite(p_suc) & np.isfinite(T_suc) & np.isfinite(p_dis) & np.isfinite(T_dis) & (p_dis > p_suc)
+    st = stage_arrays(tab, p_suc, T_suc, p_dis, T_dis)
+    use = fin & st["handled"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dh = st["h_dis"] - st["h_suc"]
+        e = np.where(st["sup"] & (dh > 0), (st["h_is"] - st["h_suc"]) / dh, np.nan)
+    eta[use] = e[use]
+    warm: dict = {}
+    for i in np.flatnonzero(fin & ~st["handled"]):
+        try:
+            eta[i] = eta_is_measured(fl, p_suc[i], T_suc[i], p_dis[i], T_dis[i], warm, "x")
+        except PropertyError:
+            failed[i] = True
+    return eta, failed
+
+
+def _observe_row(fl: Fluid, p_e, p_m, p_c, T1, T2, T3, T4, Tc, sc_rows: bool, warm: dict):
+    """One sample's states by HEOS (where the tables cannot answer): (h1, rho1, h2, h2s, h3, rho3,
+    h4, h4s, h_f(p_m), h_g(p_m), m_HS / m_LS from the intercooler balance (NaN unless T_c is the
+    subcooler outlet)), or None where undefined."""
+    try:
+        st_ls = stage_states(fl, p_e, T1, p_m, T2, warm, "LS")
+        st_hs = stage_states(fl, p_m, T3, p_c, T4, warm, "HS")
+        if st_ls is None or st_hs is None:
+            return None
+        h1, rho1, h2, h2s = st_ls
+        h3, rho3, h4, h4s = st_hs
+        sat_m = fl.sat_p(p_m)
+        m_hs = math.nan
+        if sc_rows and math.isfinite(Tc):
+            sat_c = fl.sat_p(p_c)
+            h_sc = fl.liquid_pT(p_c, Tc) if Tc < sat_c.T - 0.05 else sat_c.h_f
+            m_hs = (h2 - sat_m.h_f) / (sat_m.h_g - h_sc)      # per kg/s of m_LS
+        if not h1 - sat_m.h_f != 0.0:
+            return None
+    except (PropertyError, ZeroDivisionError, ArithmeticError):
+        return None
+    return h1, rho1, h2, h2s, h3, rho3, h4, h4s, sat_m.h_f, sat_m.h_g, m_hs
+
+
 def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings | None = None,
             T_c_location: str | None = None) -> pd.DataFrame:
     """Per sample of ``data`` (canonical columns of SPEC §4, degC, bar(g), m3/h, kW, rpm; only usable
@@ -174,53 +242,83 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
     elif isinstance(data.index, pd.DatetimeIndex):
         out["t"] = data.index.tz_convert("UTC").astype("int64").to_numpy() / 1e9 \
             if data.index.tz is not None else data.index.astype("int64").to_numpy() / 1e9
+    tab = get_tables(params.fluid)
+    # measured subcooling T_sat(p_c) - T_c (the tables; HEOS for pressures outside them)
     sub = np.full(n, np.nan)
-    for i in range(n):
-        if math.isfinite(p_c[i]) and math.isfinite(Tc[i]) and 0 < p_c[i] < fl.p_crit:
-            try:
-                sub[i] = fl.sat_p(p_c[i]).T - Tc[i]
-            except PropertyError:
-                pass
+    has = np.isfinite(p_c) & np.isfinite(Tc) & (p_c > 0) & (p_c < fl.p_crit)
+    T_sat_c = tab.T_sat(p_c)
+    sub[has] = T_sat_c[has] - Tc[has]
+    for i in np.flatnonzero(has & ~np.isfinite(T_sat_c)):
+        try:
+            sub[i] = fl.sat_p(p_c[i]).T - Tc[i]
+        except PropertyError:
+            pass
     out["subcooling_meas_K"] = sub
     loc = T_c_location or s.T_c_location
     if loc == "auto":
         loc = decide_T_c_location(sub, s)
     lo, hi = s.eta_range
+    # per-sample states of both stages: the tables for whole arrays, HEOS row by row where they
+    # cannot answer (out of their range)
+    valid = (np.isfinite(p_e) & np.isfinite(p_m) & np.isfinite(p_c) & np.isfinite(T1) & np.isfinite(T2)
+             & np.isfinite(T3) & np.isfinite(T4) & np.isfinite(Q_src)
+             & (0 < p_e) & (p_e < p_m) & (p_m < p_c) & (p_c < fl.p_crit))
+    st_ls = stage_arrays(tab, p_e, T1, p_m, T2)
+    st_hs = stage_arrays(tab, p_m, T3, p_c, T4)
+    sat_m = tab.sat(p_m)
+    sc_rows = loc == "subcooler_outlet"
+    handled = st_ls["handled"] & st_hs["handled"] & np.isfinite(sat_m.h_f)
+    if sc_rows:
+        sat_c = tab.sat(p_c)
+        handled &= ~np.isfinite(Tc) | np.isfinite(sat_c.h_f)
+    cols = ("h1", "rho1", "h2", "h2s", "h3", "rho3", "h4", "h4s", "h_f_m", "h_g_m", "m_HS")
+    S = {c: np.full(n, np.nan) for c in cols}
+    ok = valid & handled & st_ls["sup"] & st_hs["sup"]
+    S["h1"], S["rho1"], S["h2"], S["h2s"] = st_ls["h_suc"], st_ls["rho_suc"], st_ls["h_dis"], st_ls["h_is"]
+    S["h3"], S["rho3"], S["h4"], S["h4s"] = st_hs["h_suc"], st_hs["rho_suc"], st_hs["h_dis"], st_hs["h_is"]
+    S["h_f_m"], S["h_g_m"] = sat_m.h_f, sat_m.h_g
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m_ls_all = Q_src / (S["h1"] - S["h_f_m"])
+    if sc_rows:
+        # the liquid entering the HS valve is measured: the intercooler balance is exact
+        h_sc = np.where(np.isfinite(Tc), sat_c.h_f, np.nan)
+        for i in np.flatnonzero(ok & np.isfinite(Tc) & (Tc < sat_c.T - 0.05)):
+            try:
+                h_sc[i] = fl.liquid_pT(p_c[i], Tc[i])
+            except PropertyError:
+                ok[i] = False
+        with np.errstate(invalid="ignore", divide="ignore"):
+            S["m_HS"] = m_ls_all * (S["h2"] - S["h_f_m"]) / (S["h_g_m"] - h_sc)
+    ok &= np.isfinite(m_ls_all)
+    if sc_rows:
+        ok &= ~np.isfinite(Tc) | np.isfinite(S["m_HS"])
+    for c in cols:
+        S[c] = np.where(ok, S[c], np.nan)
     warm: dict = {}
-    dh_HS = np.full(n, np.nan)
-    rho_suc = {"LS": np.full(n, np.nan), "HS": np.full(n, np.nan)}
-    for i in range(n):
-        vals = (p_e[i], p_m[i], p_c[i], T1[i], T2[i], T3[i], T4[i], Q_src[i])
-        if not all(math.isfinite(v) for v in vals) or not (0 < p_e[i] < p_m[i] < p_c[i] < fl.p_crit):
-            continue
-        try:
-            st_ls = stage_states(fl, p_e[i], T1[i], p_m[i], T2[i], warm, "LS")
-            st_hs = stage_states(fl, p_m[i], T3[i], p_c[i], T4[i], warm, "HS")
-            if st_ls is None or st_hs is None:
-                continue
-            h1, rho1, h2, h2s = st_ls
-            h3, rho3, h4, h4s = st_hs
-            sat_m = fl.sat_p(p_m[i])
-            m_ls = Q_src[i] / (h1 - sat_m.h_f)
-            if loc == "subcooler_outlet" and math.isfinite(Tc[i]):
-                # the liquid entering the HS valve is measured: the intercooler balance is exact
-                sat_c = fl.sat_p(p_c[i])
-                h_sc = fl.liquid_pT(p_c[i], Tc[i]) if Tc[i] < sat_c.T - 0.05 else sat_c.h_f
-                out["m_HS_kg_s"][i] = m_ls * (h2 - sat_m.h_f) / (sat_m.h_g - h_sc)
-        except (PropertyError, ZeroDivisionError, ArithmeticError):
-            continue
-        eta_ls = (h2s - h1) / (h2 - h1) if h2 > h1 else math.nan
-        eta_hs = (h4s - h3) / (h4 - h3) if h4 > h3 else math.nan
-        out["pi_LS"][i], out["pi_HS"][i] = p_m[i] / p_e[i], p_c[i] / p_m[i]
-        out["eta_is_LS"][i] = eta_ls if lo <= eta_ls <= hi else math.nan
-        out["eta_is_HS"][i] = eta_hs if lo <= eta_hs <= hi else math.nan
-        out["m_LS_kg_s"][i] = m_ls
-        dh_HS[i] = h4 - h3
-        rho_suc["LS"][i], rho_suc["HS"][i] = rho1, rho3
-        if math.isfinite(W_LS[i]) and W_LS[i] > 0:
-            out["drive_LS"][i] = W_LS[i] / (m_ls * (h2 - h1))
-        if math.isfinite(W_HS[i]) and W_HS[i] > 0:
-            out["m_HS_W_kg_s"][i] = W_HS[i] / (h4 - h3)
+    for i in np.flatnonzero(valid & ~handled):
+        row = _observe_row(fl, p_e[i], p_m[i], p_c[i], T1[i], T2[i], T3[i], T4[i], Tc[i], sc_rows, warm)
+        if row is not None:
+            ok[i] = True
+            for c, v in zip(cols[:-1], row[:-1]):
+                S[c][i] = v
+            S["m_HS"][i] = Q_src[i] / (row[0] - row[8]) * row[10]
+    h1, rho1, h2, h2s, h3, rho3, h4, h4s = (S[c] for c in cols[:8])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m_ls = np.where(ok, Q_src / (h1 - S["h_f_m"]), np.nan)
+        eta_ls = np.where(h2 > h1, (h2s - h1) / (h2 - h1), np.nan)
+        eta_hs = np.where(h4 > h3, (h4s - h3) / (h4 - h3), np.nan)
+    out["pi_LS"] = np.where(ok, p_m / p_e, np.nan)
+    out["pi_HS"] = np.where(ok, p_c / p_m, np.nan)
+    out["eta_is_LS"] = np.where(ok & (eta_ls >= lo) & (eta_ls <= hi), eta_ls, np.nan)
+    out["eta_is_HS"] = np.where(ok & (eta_hs >= lo) & (eta_hs <= hi), eta_hs, np.nan)
+    out["m_LS_kg_s"] = m_ls
+    if sc_rows:
+        out["m_HS_kg_s"] = np.where(ok, S["m_HS"], np.nan)
+    dh_HS = np.where(ok, h4 - h3, np.nan)
+    rho_suc = {"LS": np.where(ok, rho1, np.nan), "HS": np.where(ok, rho3, np.nan)}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["drive_LS"] = np.where(ok & np.isfinite(W_LS) & (W_LS > 0), W_LS / (m_ls * (h2 - h1)), np.nan)
+        out["m_HS_W_kg_s"] = np.where(ok & np.isfinite(W_HS) & (W_HS > 0), W_HS / dh_HS, np.nan)
     if loc != "subcooler_outlet":
         # T_c is the saturated condensate: the SC outlet is not measured, and modelling it would
         # lean on CF_SC, which the initial calibration cannot separate from CF_con. The HS flow
@@ -453,18 +551,22 @@ class LocalCurves:
         w_all = np.exp(-0.5 * (((nodes[:, None, :] - centres[None, :, :]) / h) ** 2).sum(axis=2))
         w_all[w_all < 1e-4] = 0.0
         G = global_A / max(np.trace(global_A) / 6.0, 1e-300)      # normalised global precision
-        for k in np.flatnonzero(near):
-            w = w_all[k]
-            A = np.tensordot(w, As, axes=1)
-            if np.trace(A) <= 0:
-                continue
+        # all nodes at once: the weighted bin statistics (k, 6, 6) and (k, 6), then one batched solve
+        k_near = np.flatnonzero(near)
+        if len(k_near):
+            w = w_all[k_near]
+            A = (w @ As.reshape(len(As), 36)).reshape(-1, 6, 6)
+            fitted = np.trace(A, axis1=1, axis2=2) > 0
             mu = s.local_prior_weight
             A_tot = A + mu * G
-            b_tot = np.tensordot(w, bs, axes=1) + mu * G @ global_coef
-            try:
-                coef[k] = np.linalg.solve(A_tot, b_tot)
-            except np.linalg.LinAlgError:
-                continue
+            b_tot = w @ bs + mu * (G @ global_coef)
+            for k, ok_k, Ak, bk in zip(k_near, fitted, A_tot, b_tot):
+                if not ok_k:
+                    continue
+                try:
+                    coef[k] = np.linalg.solve(Ak, bk)
+                except np.linalg.LinAlgError:
+                    continue
         self.coef = coef.reshape(npi, nn, 6)
         self.valid = np.isfinite(self.coef).all(axis=2)
         # the outermost ring of nodes answers with the global curve, so that the blend meets the
@@ -474,26 +576,67 @@ class LocalCurves:
         self.global_coef = global_coef
         self.ok = bool(self.valid.any())
 
-    def value(self, pi: float, n: float) -> float | None:
-        """The local curve at (pi, n), None outside the grid's valid nodes."""
+    def _fast(self) -> None:
+        """Nested lists of every node's coefficients (the global curve where a node has no local
+        fit): the curves are evaluated millions of times per replay, in plain floats."""
+        c = np.where(self.valid[:, :, None], self.coef, np.asarray(self.global_coef)[None, None, :])
+        self._c = c.tolist()
+        self._ni, self._nj = c.shape[0] - 1, c.shape[1] - 1
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d.pop("_c", None)       # rebuilt on first use (keeps pickles small)
+        return d
+
+    def _cell(self, pi: float, n: float, left: bool = False):
+        """(i, j, fx, fy, zp, zn) of (pi, n), None outside the grid. ``left``: on a node line in n,
+        take the cell below (one-sided derivative from the left)."""
         if not (self.ok and math.isfinite(pi) and math.isfinite(n)):
             return None
+        if "_c" not in self.__dict__:
+            self._fast()
         x = (pi - self.p0) / self.dpi
         y = (n - self.n0) / self.dn
         i, j = int(math.floor(x)), int(math.floor(y))
-        if not (0 <= i < self.coef.shape[0] - 1 and 0 <= j < self.coef.shape[1] - 1):
+        fy = y - j
+        if left and fy == 0.0 and j > 0:
+            j, fy = j - 1, 1.0
+        if not (0 <= i < self._ni and 0 <= j < self._nj):
             return None
-        fx, fy = x - i, y - j
-        zp = (pi - _Z[0]) / _Z[1]
-        zn = (n - _Z[2]) / _Z[3]
-        basis = np.array([1.0, zp, zn, zp * zp, zp * zn, zn * zn])
-        # a node without a local fit contributes the global curve: continuous where the local
-        # region ends
-        c = np.zeros(6)
-        for (a, b), wgt in (((i, j), (1 - fx) * (1 - fy)), ((i + 1, j), fx * (1 - fy)),
-                            ((i, j + 1), (1 - fx) * fy), ((i + 1, j + 1), fx * fy)):
-            c += wgt * (self.coef[a, b] if self.valid[a, b] else self.global_coef)
-        return float(c @ basis)
+        return i, j, x - i, fy, (pi - _Z[0]) / _Z[1], (n - _Z[2]) / _Z[3]
+
+    def value(self, pi: float, n: float) -> float | None:
+        """The local curve at (pi, n), None outside the grid's valid nodes. Between nodes the four
+        surrounding polynomials are blended bilinearly; a node without a local fit contributes the
+        global curve (continuous where the local region ends)."""
+        cell = self._cell(pi, n)
+        if cell is None:
+            return None
+        i, j, fx, fy, zp, zn = cell
+        r0, r1 = self._c[i], self._c[i + 1]
+        pp, pn, nn = zp * zp, zp * zn, zn * zn
+        v = [c[0] + c[1] * zp + c[2] * zn + c[3] * pp + c[4] * pn + c[5] * nn
+             for c in (r0[j], r1[j], r0[j + 1], r1[j + 1])]
+        return ((1 - fy) * ((1 - fx) * v[0] + fx * v[1])) + (fy * ((1 - fx) * v[2] + fx * v[3]))
+
+    def value_dn(self, pi: float, n: float, left: bool = False) -> tuple[float, float] | None:
+        """(value, d value / d n) at (pi, n) (the derivative of the bilinear blend, exact within a
+        cell), None outside the grid."""
+        cell = self._cell(pi, n, left)
+        if cell is None:
+            return None
+        i, j, fx, fy, zp, zn = cell
+        r0, r1 = self._c[i], self._c[i + 1]
+        pp, pn, nn = zp * zp, zp * zn, zn * zn
+        cs = (r0[j], r1[j], r0[j + 1], r1[j + 1])
+        v = [c[0] + c[1] * zp + c[2] * zn + c[3] * pp + c[4] * pn + c[5] * nn for c in cs]
+        dv = [c[2] + c[4] * zp + 2.0 * c[5] * zn for c in cs]
+        lo = (1 - fx) * v[0] + fx * v[1]
+        hi = (1 - fx) * v[2] + fx * v[3]
+        val = (1 - fy) * lo + fy * hi
+        d = (hi - lo) / self.dn + ((1 - fy) * ((1 - fx) * dv[0] + fx * dv[1])
+                                   + fy * ((1 - fx) * dv[2] + fx * dv[3])) / _Z[3]
+        return val, d
 
 
 @dataclass(frozen=True)
@@ -515,30 +658,47 @@ class LearnedCompressor(Compressor):
         v = v if v is not None else Compressor.eta_vol_at(self, pi, n)
         return v + _zvalue(self.delta_vol, pi, n) if self.delta_vol is not None else v
 
+    def _vol_dn(self, pi: float, n: float, left: bool = False) -> tuple[float, float]:
+        """eta_vol and its derivative in n at (pi, n) (``left``: one-sided from below on a node
+        line); the value is exactly ``eta_vol_at``'s."""
+        r = self.local_vol.value_dn(pi, n, left)
+        if r is None:
+            c = self.eta_vol
+            v = Compressor.eta_vol_at(self, pi, n)
+            d = c[2] + c[4] * pi + 2.0 * c[5] * n
+        else:
+            v, d = r
+        a = self.delta_vol
+        if a is not None:
+            zp = (pi - _Z[0]) / _Z[1]
+            zn = (n - _Z[2]) / _Z[3]
+            v = v + _zvalue(a, pi, n)
+            d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
+        return v, d
+
     def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
-        """As Compressor.speed_for_flow (same contract), by Newton with a numerical derivative:
-        phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume), continued linearly beyond the
-        speed bounds."""
+        """As Compressor.speed_for_flow (same contract), by safeguarded Newton with the analytic
+        derivative of the blended curve: phi(n) = eta_vol(pi, n) * n = m / (rho_suc * swept_volume),
+        continued linearly beyond the speed bounds (with the one-sided slope inside the range)."""
         if self.local_vol is None or not self.local_vol.ok:
             return Compressor.speed_for_flow(self, m, rho_suc, pi, n0)
         target = m / (rho_suc * self.swept_volume)
         n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
-        eps = 1e-6
 
         def phi(n: float) -> tuple[float, float]:
-            f = self.eta_vol_at(pi, n) * n
-            h = -eps if n >= n_hi else eps       # one-sided inside the speed range
-            return f, (self.eta_vol_at(pi, n + h) * (n + h) - f) / h
+            v, d = self._vol_dn(pi, n, left=n >= n_hi)
+            return v * n, v + n * d
 
-        for edge in (n_lo, n_hi):
-            if phi(edge)[1] <= 0.0:
+        lo_edge, hi_edge = phi(n_lo), phi(n_hi)
+        for edge, (_, slope) in ((n_lo, lo_edge), (n_hi, hi_edge)):
+            if slope <= 0.0:
                 raise ValueError(f"volumetric-efficiency curve gives a flow that does not rise with "
                                  f"speed at pressure ratio {pi:.3f}, n={edge:.3f}")
-        f_hi, d_hi = phi(n_hi)
+        f_hi, d_hi = hi_edge
         if target > f_hi:
             n = n_hi + (target - f_hi) / d_hi
             return n, target / n
-        f_lo, d_lo = phi(n_lo)
+        f_lo, d_lo = lo_edge
         if target < f_lo:
             n = n_lo + (target - f_lo) / d_lo
             if n <= 0.0:

@@ -23,8 +23,10 @@ history first.
 from __future__ import annotations
 
 import math
+import pickle
 import time
-from dataclasses import asdict, dataclass, field
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -33,8 +35,8 @@ from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import process, usable_counts
 from ..params import PlantParams
-from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, ChainState, WindowResult
-from .compressors import STAGES, observe
+from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
+from .compressors import STAGES, CompressorLearner, observe
 
 WINDOW_COLUMNS = ROW_COLUMNS
 CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before_K_per_kW",
@@ -249,13 +251,20 @@ def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
 
 def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings | None = None,
            initial_window: tuple | None = None, processed: pd.DataFrame | None = None,
-           progress=None, chain_settings: ChainSettings | None = None) -> ReplayResult:
+           progress=None, chain_settings: ChainSettings | None = None,
+           executor=None, commissioning: dict | None = None) -> ReplayResult:
     """Replay ``history`` (canonical columns + ``timestamp``) on the plant ``params`` (plant.yaml).
 
     initial_window : (start, end) timestamps; default the first ``initial_minutes`` usable minutes.
     processed : the output of ``model.measured.process`` when the caller already has it.
     progress : callable(done, total) called once per window.
     chain_settings : default from plant.yaml (advice, compressor_learning).
+    executor : anything with concurrent.futures' ``submit`` (a ProcessPoolExecutor, a Dask
+        ``distributed.Client``): the windows' expensive analysis runs there (``run_windows``); the
+        results are identical to the sequential replay (None: in this process, window by window).
+    commissioning : {"initial": doc, "dp_clean": doc, "compressors": doc or None} as the gateway's
+        state directory stores them: the plant was commissioned before the history starts; no
+        initial window is taken from the history and windows start at its first sample.
     """
     t0 = time.perf_counter()
     s = settings or ReplaySettings.from_config(params.extra)
@@ -272,33 +281,59 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     usable = processed["usable"].to_numpy(dtype=bool)
     notes: list[str] = []
 
-    # ---- initial window -----------------------------------------------------------------------
-    if initial_window is not None:
-        a, b = (pd.Timestamp(x) for x in initial_window)
-        a = a.tz_localize("UTC") if a.tzinfo is None else a
-        b = b.tz_localize("UTC") if b.tzinfo is None else b
-        init_mask = usable & (ts >= a) & (ts <= b)
-    else:
-        idx = np.flatnonzero(usable)[: int(s.initial_minutes)]
-        init_mask = np.zeros(len(ts), dtype=bool)
-        init_mask[idx] = True
-    if init_mask.sum() < s.min_samples:
-        raise ReplayError(f"initial window has {int(init_mask.sum())} usable samples, fewer than "
-                          f"{s.min_samples}")
-    init_idx = np.flatnonzero(init_mask)
-    iw = (ts[init_idx[0]].isoformat(), ts[init_idx[-1]].isoformat())
-    init_data = calibration_frame(history, processed, init_mask)
     chain = AnalysisChain(params, spec_from_config(params.extra, "fouling"),
                           chain_settings or ChainSettings.from_config(params.extra, optimize=s.optimize,
                                                                       min_samples=int(s.min_samples),
-                                                                      use_surrogate=bool(s.surrogate)))
-    learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
-    base = learner.apply(params) if learner is not None else params
-    initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
-    try:
-        dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
-    except DpFitError as exc:
-        raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
+                                                                      use_surrogate=bool(s.surrogate)
+                                                                      and executor is None))
+    if executor is not None and chain.s.use_surrogate:
+        # the surrogate learns from each window's optimum in window order and would have to be
+        # ahead of the windows analysed in parallel: a parallel replay runs the search everywhere
+        chain = AnalysisChain(chain.plant, chain.spec, replace(chain.s, use_surrogate=False))
+    if executor is not None and s.surrogate:
+        notes.append("parallel replay: the set-point search in every window (the surrogate from the "
+                     "window optima is fitted only in a sequential replay, as the gateway runs)")
+    if commissioning is not None:
+        # ---- commissioned before the history: the stored initial calibration, clean pressure-drop
+        # fit and (when there) the commissioning compressor curves; windows from the first sample
+        try:
+            initial = CalibrationResult.from_dict(commissioning["initial"])
+            dpfit = DpCleanFit.from_dict(commissioning["dp_clean"])
+            learner = None
+            if chain.s.learn_compressors:
+                doc = commissioning.get("compressors")
+                learner = (CompressorLearner.from_dict(doc, params, chain.s.learning) if doc is not None
+                           else CompressorLearner(params, chain.s.learning))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ReplayError(f"commissioning state: {exc}") from exc
+        init_idx = np.array([], dtype=int)
+        iw = (str(initial.window_start), str(initial.window_end))
+        notes.append("commissioning from the state directory (initial calibration, clean pressure "
+                     "drop" + (", compressor curves" if commissioning.get("compressors") else "") + ")")
+    else:
+        # ---- initial window -------------------------------------------------------------------
+        if initial_window is not None:
+            a, b = (pd.Timestamp(x) for x in initial_window)
+            a = a.tz_localize("UTC") if a.tzinfo is None else a
+            b = b.tz_localize("UTC") if b.tzinfo is None else b
+            init_mask = usable & (ts >= a) & (ts <= b)
+        else:
+            idx = np.flatnonzero(usable)[: int(s.initial_minutes)]
+            init_mask = np.zeros(len(ts), dtype=bool)
+            init_mask[idx] = True
+        if init_mask.sum() < s.min_samples:
+            raise ReplayError(f"initial window has {int(init_mask.sum())} usable samples, fewer than "
+                              f"{s.min_samples}")
+        init_idx = np.flatnonzero(init_mask)
+        iw = (ts[init_idx[0]].isoformat(), ts[init_idx[-1]].isoformat())
+        init_data = calibration_frame(history, processed, init_mask)
+        learner = chain.commissioning_learner(history.loc[init_mask].assign(timestamp=ts[init_mask]))
+        base = learner.apply(params) if learner is not None else params
+        initial = calibrate(init_data, base, spec_from_config(params.extra, "initial"), window=iw)
+        try:
+            dpfit = fit_dp_clean(init_data["V_source"], init_data["dp_source_bar"], form=s.dp_form, window=iw)
+        except DpFitError as exc:
+            raise ReplayError(f"clean pressure-drop fit on the initial window: {exc}") from exc
     state = chain.new_state(initial.to_dict(), dpfit.to_dict(), learner)
     if not initial.identifiable:
         notes.append("the initial calibration is not fully identifiable (see its warnings); the fixed "
@@ -316,14 +351,20 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     pending = sorted(cips, key=lambda c: c["end"])       # issue 10: CIPs reset the forecast
     if progress is not None:
         progress(0, len(plan))
-    for n_done, (m, new_seg) in enumerate(plan, start=1):
-        if new_seg:
-            chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
-        data = history.loc[m].assign(timestamp=ts[m])
-        while pending and pending[0]["end"] <= data["timestamp"].iloc[0]:
-            c_ = pending.pop(0)
-            chain.cip(state, c_["start"], c_["end"], c_["detected_by"])
-        res = chain.window(data, state)
+
+    def tasks():
+        """Pass 1, in window order: each window's task (the learner updated, and so on)."""
+        for m, new_seg in plan:
+            if new_seg:
+                chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
+            yield chain.prepare(history.loc[m].assign(timestamp=ts[m]), state, samples=True)
+
+    for n_done, partial in enumerate(run_windows(chain, tasks(), executor), start=1):
+        start = partial.res.window_start
+        while pending and start and pending[0]["end"] <= pd.Timestamp(start):
+            c_ = pending.pop(0)         # the forecast restarts (pass 3's state; segments are pass 1's)
+            chain.cip(state, c_["start"], c_["end"], c_["detected_by"], segment=False)
+        res = chain.finish(partial, state)          # pass 3, in window order
         if res.ok and "cip" in res.detail:
             when = res.detail["cip"]["text"]
         if not res.ok:
@@ -331,7 +372,8 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
                 else res.status
             skipped[key] = skipped.get(key, 0) + 1
         rows.append(res.row())
-        sample_parts.append(_window_samples(data, res, state))
+        if partial.samples is not None:
+            sample_parts.append(partial.samples)
         if progress is not None:
             progress(n_done, len(plan))
     windows = pd.DataFrame(rows, columns=list(WINDOW_COLUMNS))
@@ -361,11 +403,12 @@ def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.Data
     cip_flag = (pd.to_numeric(history["cip"], errors="coerce").fillna(0).to_numpy() > 0.5
                 if "cip" in history.columns else None)
     cips = detect_cips(ts, processed, cip_flag, s.cip_off_minutes)
-    after_init = ts > ts[init_idx[-1]]
+    t_init = ts[init_idx[-1]] if len(init_idx) else ts[0] - pd.Timedelta(seconds=1)
+    after_init = ts > t_init
     # operation segments between CIPs; each is tiled evenly with windows of about window_hours, so
     # that the windows next to a CIP end at its start and begin at its end
     segments = []
-    cur = ts[init_idx[-1]] + pd.Timedelta(seconds=1)
+    cur = t_init + pd.Timedelta(seconds=1)
     for c_ in cips:
         if c_["start"] > cur:
             segments.append((cur, c_["start"]))
@@ -403,32 +446,6 @@ def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.Data
                 skipped["too few usable samples"] = skipped.get("too few usable samples", 0) + 1
 
     return plan, skipped, cips
-
-
-def _window_samples(data: pd.DataFrame, res: WindowResult, state: ChainState) -> pd.DataFrame:
-    """Per-sample model series of one window (for samples.csv)."""
-    out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
-    out["window_start"] = res.window_start
-    series = res.detail.get("model_series")
-    if series is not None:      # the model figures' samples (evenly spaced, chain.figure_rows)
-        for kind in ("fixed", "adaptive"):
-            f = series[kind]
-            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}")):
-                v = np.full(len(out), np.nan)
-                v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
-                out[name] = v
-        res.detail.pop("model_series")
-    learner = state.learner
-    if learner is not None:
-        obs = observe(data, state.fixed, learner.s)
-        for st in STAGES:
-            pi, n = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
-            ok = np.isfinite(pi) & np.isfinite(n)
-            v = np.full(len(obs), np.nan)
-            if ok.any():
-                v[ok] = learner.eta_is(st, pi[ok], n[ok])
-            out[f"eta_is_{st}_model"] = v
-    return out
 
 
 def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.DataFrame,
@@ -475,3 +492,40 @@ def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:
             "CF_dp_f_before": float(before["CF_dp_f"].mean()) if len(before) else math.nan,
             "CF_dp_f_after": float(after["CF_dp_f"].mean()) if len(after) else math.nan})
     return rows
+
+
+# --------------------------------------------------------------------------------------------------
+# the Executor seam
+# --------------------------------------------------------------------------------------------------
+def _analyse_pickled(chain_blob: bytes, task_blob: bytes) -> WindowPartial:
+    """Pass 2 of one window in whichever process the executor chose (CoolProp state and property
+    tables are built there on first use, never shipped)."""
+    chain = pickle.loads(chain_blob)
+    return chain.analyse(pickle.loads(task_blob))
+
+
+MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
+
+
+def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None):
+    """Yield each task's ``chain.analyse(task)`` in the tasks' order.
+
+    Without an executor the tasks are analysed here, one by one, as they come (pass 1 of a window
+    runs only after pass 3 of the one before: the gateway's order). With one, each task is pickled
+    the moment pass 1 has produced it (a snapshot: pass 1 goes on to change the learner for the next
+    window) and submitted; at most ``max_pending`` (default MAX_PENDING) are in flight. Pass 2
+    depends on nothing but its task, so the results equal the sequential ones."""
+    if executor is None:
+        for t in tasks:
+            yield chain.analyse(t)
+        return
+    chain_blob = pickle.dumps(chain, protocol=pickle.HIGHEST_PROTOCOL)
+    max_pending = max(1, int(max_pending or MAX_PENDING))
+    pending: deque = deque()
+    for t in tasks:
+        pending.append(executor.submit(_analyse_pickled, chain_blob,
+                                       pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL)))
+        while len(pending) >= max_pending:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()

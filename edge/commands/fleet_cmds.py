@@ -1,0 +1,58 @@
+"""hp-edge fleet replay: many plants' replays on a Dask cluster (issue 12; edge/fleet.py)."""
+from __future__ import annotations
+
+import os
+import sys
+
+
+def register(sub) -> None:
+    fl = sub.add_parser("fleet", help="replay many plants on a Dask cluster (needs the [fleet] extra)",
+                        description="Fleet commands (issue 12). They import dask only here.")
+    fsub = fl.add_subparsers(dest="fleet_command", metavar="SUBCOMMAND")
+    fsub.required = True
+    rp = fsub.add_parser(
+        "replay", help="replay every plant of PLANTS.yaml; one table across plants",
+        description="Replay every plant listed in PLANTS.yaml (each with its plant.yaml, history CSV "
+                    "and optional state directory) as one task per plant on a Dask distributed "
+                    "cluster; writes DIR/<name>/ (as hp-edge replay) and DIR/fleet.csv, "
+                    "DIR/fleet.txt. A plant that fails is reported with its reason; the others go on.")
+    rp.add_argument("plants", help="PLANTS.yaml (see edge/fleet.py or the README)")
+    rp.add_argument("--out", required=True, help="output directory")
+    rp.add_argument("--scheduler", default="local",
+                    help="'local' (default): an embedded LocalCluster on 127.0.0.1; or a running "
+                         "scheduler's address, e.g. tcp://host:8786 (the workers must read the "
+                         "plants' files: a shared file system)")
+    rp.add_argument("--workers", type=int, default=None, metavar="N",
+                    help="LocalCluster worker processes (default: the CPUs, at most the plants); "
+                         "with a scheduler address the cluster's own workers are used")
+    rp.set_defaults(func=cmd_fleet_replay)
+
+
+def cmd_fleet_replay(args) -> int:
+    from edge.fleet import Cluster, FleetError, load_plants, run_fleet
+    from edge.commands.analysis_cmds import Progress, _fail
+    try:
+        entries = load_plants(args.plants)
+        if args.workers is not None and not 1 <= args.workers <= 256:
+            raise FleetError([f"--workers: expected 1..256, got {args.workers}"])
+        sched = args.scheduler
+        if sched != "local" and not (sched.startswith("tcp://") or sched.startswith("tls://")):
+            raise FleetError([f"--scheduler: expected 'local' or an address such as tcp://host:8786, "
+                              f"got {sched!r}"])
+        n = args.workers or max(1, min(os.cpu_count() or 1, len(entries)))
+        with Cluster(sched, n) as client:
+            table = run_fleet(entries, args.out, executor=client, progress=Progress("plants"))
+    except FleetError as exc:
+        return _fail("fleet replay", exc)
+    except OSError as exc:
+        return _fail("fleet replay", exc)
+    from edge.fleet import fleet_text
+    print(fleet_text(table))
+    print(f"wrote {os.path.join(args.out, 'fleet.csv')}, {os.path.join(args.out, 'fleet.txt')} and a "
+          f"replay directory per plant")
+    failed = int((table["status"] != "ok").sum())
+    return 1 if failed == len(table) else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(1)

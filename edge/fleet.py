@@ -1,0 +1,355 @@
+"""Fleet replay (issue 12): many plants' histories through the same Executor seam as one replay,
+on a Dask distributed cluster.
+
+PLANTS.yaml (read by edge.yamlfile's strict loader; problems name the file, line, plant and key)::
+
+    plants:
+      - name: cph-1                      # output directory DIR/cph-1 (letters, digits, . _ -)
+        plant: cph-1/plant.yaml          # paths relative to PLANTS.yaml
+        history: cph-1/history.csv
+        state: cph-1/state               # optional: commissioning from the plant's state directory
+        initial_window: 2024-03-01T00:00/2024-03-01T01:30   # optional (else the first 90 minutes)
+        window_hours: 2                  # optional
+
+Each plant runs as one task (``replay_plant``) in a worker: it reads its own plant.yaml and
+history (paths must be readable by the workers: always with the embedded LocalCluster, on a shared
+file system with a remote scheduler), replays sequentially (one core per plant: plants are the
+parallelism) and returns its ReplayResult; the client writes DIR/<name>/ (the same files as
+``hp-edge replay``) and one table across plants, DIR/fleet.csv and DIR/fleet.txt. A plant that
+fails is reported with its reason (fleet.csv status/reason) and the others go on.
+
+``executor``: anything with concurrent.futures' ``submit`` whose futures have ``result()``: a
+``distributed.Client`` (the cluster engine), or a stdlib executor. ``dask``/``distributed`` are
+imported only by ``cluster()``, i.e. only by ``hp-edge fleet``.
+"""
+from __future__ import annotations
+
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+PLANT_KEYS = ("name", "plant", "history", "state", "initial_window", "window_hours")
+TREND_DAYS = 7.0              # R_th,f rate: linear fit over the last this many days since the last CIP
+FLEET_COLUMNS = (
+    "name", "status", "reason", "period_start", "period_end", "days", "windows", "windows_ok",
+    "R_th_f_now_K_per_kW", "R_th_f_rate_K_per_kW_per_day", "R_th_f_rate_basis", "R_th_f_share_pct",
+    "CF_dp_f_now", "cips", "cip_removed_pct_mean", "cip_removed_pct", "dCOP_setpoint_pct",
+    "dCOP_setpoint_confident_pct", "advice_confident_share", "p_m_sp_actual_barg", "p_m_sp_model_opt_barg",
+    "fouling_cost_eur_per_day", "replay_s", "out_dir")
+
+
+class FleetError(ValueError):
+    """PLANTS.yaml is invalid (``problems``: one line each) or the cluster cannot be reached."""
+
+    def __init__(self, problems: list[str]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+@dataclass(frozen=True)
+class PlantEntry:
+    name: str
+    plant: str                     # absolute paths
+    history: str
+    state: str | None = None
+    initial_window: str | None = None
+    window_hours: float | None = None
+
+
+@dataclass
+class PlantOutcome:
+    """What one plant's task returns (picklable)."""
+    name: str
+    ok: bool
+    reason: str = ""
+    result: object = None          # model.analysis.replay.ReplayResult
+    reading: list = field(default_factory=list)    # what reading the history skipped
+    seconds: float = math.nan
+
+
+# --------------------------------------------------------------------------------------------------
+# PLANTS.yaml
+# --------------------------------------------------------------------------------------------------
+def load_plants(path: str | Path) -> list[PlantEntry]:
+    """The plants of PLANTS.yaml; FleetError with every problem (file, line, plant, key)."""
+    from edge.yamlfile import Problems, Section, display_path, key_line, load_yaml
+    path = Path(path)
+    file = display_path(path)
+    p = Problems()
+    data = load_yaml(p, path, file)
+    if p.lines:
+        raise FleetError(p.lines)
+    top = Section(p, file, None, data)
+    if not top.mapping():
+        raise FleetError(p.lines)
+    top.keys(("plants",), required=("plants",))
+    plants = data.get("plants") if isinstance(data, dict) else None
+    base = path.resolve().parent
+    out: list[PlantEntry] = []
+    if "plants" in data and not (isinstance(plants, list) and plants):
+        p.add(file, None, "plants", "expected a non-empty list of plants", line=key_line(data, "plants"))
+    seen: dict[str, int] = {}
+    for i, item in enumerate(plants if isinstance(plants, list) else []):
+        name_hint = item.get("name") if isinstance(item, dict) and isinstance(item.get("name"), str) else None
+        where = f"plant {i + 1}" + (f" '{name_hint}'" if name_hint else "")
+        sec = Section(p, file, where, item)
+        if not isinstance(item, dict):
+            p.add(file, where, None, f"expected a mapping with keys {', '.join(PLANT_KEYS)}")
+            continue
+        n0 = len(p.lines)
+        sec.keys(PLANT_KEYS, required=("name", "plant", "history"))
+        name = sec.string("name") if "name" in item else None
+        if name is not None and not NAME.match(name):
+            sec.problem("name", f"{name!r} is not a usable directory name (letters, digits, '.', '_', "
+                                "'-'; at most 64)")
+            name = None
+        if name is not None:
+            if name in seen:
+                sec.problem("name", f"{name!r} is used twice (first by plant {seen[name]})")
+            seen.setdefault(name, i + 1)
+        plant = sec.path("plant", base, must_exist=True) if "plant" in item else None
+        hist = sec.path("history", base, must_exist=True) if "history" in item else None
+        state = None
+        if "state" in item and item["state"] is not None:
+            state = sec.path("state", base)
+            if state is not None and not state.is_dir():
+                sec.problem("state", f"not a directory: {display_path(state)}")
+                state = None
+        iw = None
+        if "initial_window" in item:
+            iw = sec.string("initial_window")
+            if iw is not None and (len(iw.split("/")) != 2 or not all(x.strip() for x in iw.split("/"))):
+                sec.problem("initial_window", f"expected START/END (ISO 8601), got {iw!r}")
+                iw = None
+        wh = sec.number("window_hours", positive=True, default=None) if "window_hours" in item else None
+        if len(p.lines) == n0 and name and plant and hist:
+            out.append(PlantEntry(name, str(plant), str(hist), str(state) if state else None, iw, wh))
+    if p.lines:
+        raise FleetError(p.lines)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# one plant (runs in a worker)
+# --------------------------------------------------------------------------------------------------
+def replay_plant(entry: PlantEntry) -> PlantOutcome:
+    """Read one plant's plant.yaml and history, replay it (sequentially, in this worker) and return
+    the result, or the reason it failed. Never raises: one plant cannot stop the fleet."""
+    t0 = time.perf_counter()
+    try:
+        return _replay_plant(entry, t0)
+    except Exception as exc:       # noqa: BLE001 - the fleet's boundary: report it, go on
+        return PlantOutcome(entry.name, False, f"{type(exc).__name__}: {exc}",
+                            seconds=time.perf_counter() - t0)
+
+
+def _replay_plant(entry: PlantEntry, t0: float) -> PlantOutcome:
+    import pandas as pd
+    from edge.io.history import HistoryError, read_history
+    from edge.plantfile import PlantFileError, load_plant
+    from edge.statefiles import COMPRESSORS, DP_CLEAN, INITIAL_CALIBRATION, StateError, read_state
+    from model.calibration import CalibrationError
+    from model.dpfit import DpFitError
+    from model.analysis.replay import ReplayError, ReplaySettings, replay
+    try:
+        params = load_plant(entry.plant)
+        h = read_history(entry.history)
+        settings = ReplaySettings.from_config(params.extra, window_hours=entry.window_hours)
+        iw = None
+        if entry.initial_window:
+            a, b = (pd.Timestamp(x.strip()) for x in entry.initial_window.split("/"))
+            iw = (a, b)
+        commissioning = None
+        if entry.state:
+            docs = {k: read_state(n, entry.state) for k, n in
+                    (("initial", INITIAL_CALIBRATION), ("dp_clean", DP_CLEAN), ("compressors", COMPRESSORS))}
+            if docs["initial"] is not None and docs["dp_clean"] is not None:
+                commissioning = docs
+        res = replay(h.frame, params, settings, initial_window=iw, commissioning=commissioning)
+    except (PlantFileError, HistoryError, ReplayError, CalibrationError, DpFitError, StateError,
+            ValueError, OSError) as exc:
+        return PlantOutcome(entry.name, False, _one_line(exc), seconds=time.perf_counter() - t0)
+    return PlantOutcome(entry.name, True, result=res, reading=h.report_lines(entry.history),
+                        seconds=time.perf_counter() - t0)
+
+
+def _one_line(exc: Exception) -> str:
+    lines = [ln for ln in str(exc).splitlines() if ln.strip()] or [type(exc).__name__]
+    return lines[0] + (f" (+{len(lines) - 1} more)" if len(lines) > 1 else "")
+
+
+# --------------------------------------------------------------------------------------------------
+# the fleet
+# --------------------------------------------------------------------------------------------------
+def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progress=None) -> "pd.DataFrame":
+    """Replay every plant through ``executor`` (None: one after the other, here), write each
+    plant's directory and the fleet table (DIR/fleet.csv, DIR/fleet.txt); return the table."""
+    import pandas as pd
+    from edge.replaydir import write_replay_dir
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if executor is None:
+        outcomes = (replay_plant(e) for e in entries)
+    else:
+        futures = [executor.submit(replay_plant, e) for e in entries]
+        outcomes = (_outcome(f, e) for f, e in zip(futures, entries))
+    rows = []
+    for k, (e, o) in enumerate(zip(entries, outcomes), start=1):
+        d = out / e.name
+        if o.ok:
+            try:
+                write_replay_dir(o.result, d, {"plant": e.plant, "history": e.history,
+                                               "fleet": True}, "\n".join(o.reading))
+            except OSError as exc:
+                o = PlantOutcome(e.name, False, f"writing {d}: {exc.strerror or exc}", seconds=o.seconds)
+        rows.append(plant_row(e, o, d))
+        if progress is not None:
+            progress(k, len(entries))
+    table = pd.DataFrame(rows, columns=list(FLEET_COLUMNS))
+    tmp = out / ".fleet.csv.tmp"
+    table.to_csv(tmp, index=False, float_format="%.6g")
+    tmp.replace(out / "fleet.csv")
+    (out / "fleet.txt").write_text(fleet_text(table) + "\n", encoding="utf-8")
+    return table
+
+
+def _outcome(future, entry: PlantEntry) -> PlantOutcome:
+    """A future's outcome; a task that died (worker lost, cancelled) is a failed plant too."""
+    try:
+        return future.result()
+    except Exception as exc:       # noqa: BLE001 - e.g. distributed's KilledWorker: report, go on
+        return PlantOutcome(entry.name, False, f"task failed: {type(exc).__name__}: {_one_line(exc)}")
+
+
+def plant_row(e: PlantEntry, o: PlantOutcome, out_dir: Path) -> dict:
+    """One plant's line of the fleet table (see FLEET_COLUMNS)."""
+    import numpy as np
+    import pandas as pd
+    row = dict.fromkeys(FLEET_COLUMNS, math.nan)
+    row.update(name=e.name, status="ok" if o.ok else "failed", reason=o.reason, R_th_f_rate_basis="",
+               cip_removed_pct="", replay_s=round(o.seconds, 2) if math.isfinite(o.seconds) else math.nan,
+               out_dir=str(out_dir) if o.ok else "")
+    if not o.ok:
+        return row
+    r = o.result
+    w = r.windows
+    row.update(period_start=r.meta.get("period_start", ""), period_end=r.meta.get("period_end", ""),
+               windows=int(len(w)))
+    t0, t1 = pd.Timestamp(row["period_start"]), pd.Timestamp(row["period_end"])
+    row["days"] = round((t1 - t0).total_seconds() / 86400.0, 3)
+    ok = w[w["status"] == "ok"]
+    row["windows_ok"] = int(len(ok))
+    if not len(ok):
+        row["reason"] = "no window calibrated"
+        return row
+    t_end = pd.to_datetime(ok["window_end"], utc=True)
+    R = ok["R_th_f_K_per_kW"].to_numpy(dtype=float)
+    last_day = (t_end >= t_end.iloc[-1] - pd.Timedelta(days=1)).to_numpy()
+    row["R_th_f_now_K_per_kW"] = float(np.nanmedian(R[last_day]))
+    row["R_th_f_share_pct"] = float(np.nanmedian(ok["R_th_f_share_pct"].to_numpy(dtype=float)[last_day]))
+    row["CF_dp_f_now"] = float(np.nanmedian(ok["CF_dp_f"].to_numpy(dtype=float)[last_day]))
+    # the rate: a straight line through the windows of the last TREND_DAYS since the last CIP
+    since = t_end.iloc[0] - pd.Timedelta(seconds=1)
+    if len(r.cips):
+        since = max(since, pd.Timestamp(r.cips["cip_end"].iloc[-1]))
+    start = max(since, t_end.iloc[-1] - pd.Timedelta(days=TREND_DAYS))
+    sel = (t_end > start).to_numpy() & np.isfinite(R)
+    x = (t_end[sel] - t_end[sel].iloc[0]).dt.total_seconds().to_numpy() / 86400.0 if sel.sum() else np.array([])
+    if sel.sum() >= 6 and np.ptp(x) >= 0.5:
+        slope = float(np.polyfit(x, R[sel], 1)[0])
+        row["R_th_f_rate_K_per_kW_per_day"] = slope
+        row["R_th_f_rate_basis"] = (f"linear fit of {int(sel.sum())} windows over the last {np.ptp(x):.1f} d"
+                                    f"{' since the last CIP' if len(r.cips) else ''} (no forecast in "
+                                    "replay yet)")
+    else:
+        row["R_th_f_rate_basis"] = "too few windows since the last CIP for a rate"
+    if len(r.cips):
+        rem = r.cips["R_th_f_removed_pct"].to_numpy(dtype=float)
+        row["cips"] = int(len(r.cips))
+        row["cip_removed_pct_mean"] = float(np.nanmean(rem)) if np.isfinite(rem).any() else math.nan
+        row["cip_removed_pct"] = " ".join(f"{v:.1f}" for v in rem)
+    else:
+        row["cips"] = 0
+    recent = ok[last_day]
+    row["dCOP_setpoint_pct"] = float(np.nanmean(recent["dCOP_model_opt_pct"].to_numpy(dtype=float)))
+    conf = recent["advice_confident"].astype(bool).to_numpy()
+    row["advice_confident_share"] = float(conf.mean())
+    row["dCOP_setpoint_confident_pct"] = float(np.nanmean(recent["dCOP_opt_pct"].to_numpy(dtype=float)[conf])) \
+        if conf.any() else math.nan
+    row["p_m_sp_actual_barg"] = float(np.nanmedian(recent["p_m_sp_actual_barg"].to_numpy(dtype=float)))
+    row["p_m_sp_model_opt_barg"] = float(np.nanmedian(recent["p_m_sp_model_opt_barg"].to_numpy(dtype=float)))
+    for col in ("fouling_cost_eur_per_day", "cost_eur_per_day"):   # once replay prices fouling
+        if col in ok.columns:
+            row["fouling_cost_eur_per_day"] = float(np.nanmedian(ok[col].to_numpy(dtype=float)[last_day]))
+            break
+    return row
+
+
+def fleet_text(table) -> str:
+    """The fleet table for a terminal (one line per plant) with the notes that explain it."""
+    L = [f"{'plant':<16} {'status':<7} {'period':<23} {'R_th,f now':>10} {'rate/day':>9} {'CIPs':>4} "
+         f"{'removed':>8} {'dCOP sp':>8} {'conf':>5} {'cost/day':>8}",
+         f"{'':<16} {'':<7} {'':<23} {'e-3 K/kW':>10} {'e-3K/kW':>9} {'':>4} {'%':>8} {'%':>8} {'%':>5} {'EUR':>8}"]
+
+    def f(v, fmt):
+        return format(v, fmt) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+    for _, r in table.iterrows():
+        if r["status"] != "ok":
+            L.append(f"{r['name']:<16} {'FAILED':<7} {r['reason']}")
+            continue
+        period = f"{str(r['period_start'])[:10]}..{str(r['period_end'])[:10]}"
+        L.append(f"{r['name']:<16} {'ok':<7} {period:<23} {f(1e3 * r['R_th_f_now_K_per_kW'], '10.3f')} "
+                 f"{f(1e3 * r['R_th_f_rate_K_per_kW_per_day'], '9.4f')} {f(r['cips'], '4.0f')} "
+                 f"{f(r['cip_removed_pct_mean'], '8.1f')} {f(r['dCOP_setpoint_pct'], '8.2f')} "
+                 f"{f(100 * r['advice_confident_share'], '5.0f')} {f(r['fouling_cost_eur_per_day'], '8.1f')}")
+    n_fail = int((table["status"] != "ok").sum())
+    L.append("")
+    L.append(f"{len(table)} plants, {len(table) - n_fail} replayed, {n_fail} failed")
+    L.append("R_th,f now: median of the last day's windows; rate: a linear fit of the last "
+             f"{TREND_DAYS:g} days' windows since the last CIP (replay has no fouling forecast yet); "
+             "removed: mean share of R_th,f each CIP removed; dCOP sp: the COP gain the model optimum "
+             "offers over the actual set point (last day's mean; conf: share of those windows whose "
+             "advice is confident); cost/day: cost of fouling where replay prices it (not yet: '-')")
+    return "\n".join(L)
+
+
+# --------------------------------------------------------------------------------------------------
+# the cluster
+# --------------------------------------------------------------------------------------------------
+class Cluster:
+    """A Dask distributed Client on an embedded LocalCluster (``scheduler='local'``: processes on
+    127.0.0.1, no dashboard) or on a running scheduler's address; closes what it started."""
+
+    def __init__(self, scheduler: str = "local", workers: int = 2, timeout_s: float = 60.0) -> None:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:
+            raise FleetError([f"the fleet command needs dask[distributed]: pip install 'hp-edge[fleet]' "
+                              f"({exc})"]) from None
+        self.local = None
+        try:
+            if scheduler == "local":
+                self.local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                          host="127.0.0.1", scheduler_port=0, dashboard_address=None,
+                                          silence_logs=40)
+                self.client = Client(self.local, timeout=timeout_s)
+            else:
+                self.client = Client(scheduler, timeout=timeout_s)
+        except (OSError, TimeoutError) as exc:
+            if self.local is not None:
+                self.local.close()
+            raise FleetError([f"scheduler {scheduler}: cannot connect ({exc})"]) from None
+
+    def __enter__(self):
+        return self.client
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.client.close()
+        if self.local is not None:
+            self.local.close()

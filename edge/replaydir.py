@@ -1,0 +1,40 @@
+"""The replay directory (``hp-edge replay --out DIR`` and each plant of ``hp-edge fleet replay``):
+windows.csv, cip.csv, forecast.csv, samples.csv, summary.txt, meta.json, compressors.json,
+surrogate_tracker.json and the initial calibration's state files. One writer for both commands."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+REPLAY_FILES = ("windows.csv", "cip.csv", "forecast.csv", "samples.csv", "summary.txt", "compressors.json",
+                "meta.json")
+
+
+def write_replay_dir(res, out: str | os.PathLike, meta: dict | None = None,
+                     header: str = "") -> str:
+    """Write a ``model.analysis.replay.ReplayResult`` to ``out`` (created); every file is written
+    to a temporary name and renamed, so a reader never sees half a file. ``meta`` is merged into
+    meta.json; ``header`` (e.g. what reading the CSV skipped) goes first in summary.txt. Returns
+    the summary text."""
+    from edge.statefiles import COMPRESSORS, DP_CLEAN, INITIAL_CALIBRATION, SURROGATE_TRACKER, write_state
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, frame in (("windows.csv", res.windows), ("cip.csv", res.cips), ("forecast.csv", res.forecast),
+                        ("samples.csv", res.samples)):
+        if frame is None:
+            continue
+        tmp = out / f".{name}.tmp"
+        frame.to_csv(tmp, index=False, float_format="%.10g")
+        os.replace(tmp, out / name)
+    write_state("meta.json", {**res.meta, **(meta or {})}, out)
+    if res.compressors is not None:
+        write_state(COMPRESSORS, res.compressors, out)
+    if res.surrogate_tracker is not None:
+        write_state(SURROGATE_TRACKER, res.surrogate_tracker, out)
+    text = (header + "\n" if header else "") + res.summary()
+    tmp = out / ".summary.txt.tmp"
+    tmp.write_text(text + "\n", encoding="utf-8")
+    os.replace(tmp, out / "summary.txt")
+    write_state(INITIAL_CALIBRATION, res.initial.to_dict(), out)
+    write_state(DP_CLEAN, res.dp_clean.to_dict(), out)
+    return text

@@ -232,7 +232,7 @@ def test_registers_carry_the_forecast():
                      fouling_cost_eur_per_day=182.0, fouling_cost_cum_eur=1234.5)
     values = {k: v for k, v in r.advisory_values().items() if k in {f.name for f in adv.fields}}
     words = encode_advisory(adv, values, (), 0)
-    assert {f.name: f.offset for f in adv.fields if f.offset >= 36} == {
+    assert {f.name: f.offset for f in adv.fields if 36 <= f.offset < 48} == {
         "fouling_rate": 36, "R_th_f_forecast": 38, "days_to_cip": 40, "fouling_cost": 42,
         "fouling_cost_cum": 44}
     assert words[36:46] == [0x3903, 0x126F, 0x3B93, 0x74BC, 0x4060, 0x0000, 0x4336, 0x0000,

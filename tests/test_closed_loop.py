@@ -581,11 +581,12 @@ def test_the_benchs_judge_finds_every_kind_of_violation():
     def sp():
         return NS(address=110, count=1, values=(0,), function_code=16)
 
+    lo = BENCH_LOOP["bounds_bar_g"][0]
     sim = NS(setpoint_log=[
         {"old": 16.0, "new": 15.5, "accepted": True, "plant_t": 0.0},
         {"old": 15.5, "new": 14.8, "accepted": True, "plant_t": 300.0},     # step 0.7
-        {"old": 10.2, "new": 9.7, "accepted": True, "plant_t": 600.0},      # below 10
-        {"old": 9.7, "new": 10.2, "accepted": False, "plant_t": 900.0}],
+        {"old": lo + 0.2, "new": lo - 0.3, "accepted": True, "plant_t": 600.0},   # below the bounds
+        {"old": lo - 0.3, "new": lo + 0.2, "accepted": False, "plant_t": 900.0}],
         write_log=[block(0), sp(), block(off), sp(), block(0), sp(), block(stale), sp(), block(0),
                    NS(address=111, count=1, values=(1,), function_code=6)])
     got = judge_writes(sim, adv.start, adv.size, 110, bits, BENCH_LOOP)

@@ -381,7 +381,8 @@ def test_advisory_encode_layout(adv):
     assert words[28:30] == [0x0000, 60]
     assert words[6:8] == [0x7FC0, 0x0000]        # dCOP_pct not given -> NaN
     assert words[30:32] == [0x7FC0, 0x0000]      # dCOP_sd_pct not given -> NaN
-    assert words[36:48] == [0] * 12              # not covered by any field
+    assert words[36:46] == [0x7FC0, 0x0000] * 5  # the CIP fields (issue 10) not given -> NaN
+    assert words[46:48] == [0] * 2               # not covered by any field
     assert words[48:50] == [0, 0]                # closed_loop_state, _reason not given -> 0
     assert words[50:54] == [0x7FC0, 0, 0x7FC0, 0]  # closed_loop_sp_written, _target -> NaN
     assert words[54:] == [0] * 10                # last write, writes; 57..63 not covered

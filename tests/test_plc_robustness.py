@@ -80,9 +80,10 @@ def test_a_refused_group_falls_back_alone_and_is_retried_with_backoff(caplog):
 
     with caplog.at_level(logging.DEBUG, logger="edge.plc"):
         polls = run(scenario())
-    grouped = [(4, 0, 32), (3, 100, 11), (3, 200, 6)]
-    per_tag = [(4, 0, 32), (3, 100, 2), (3, 102, 1), (3, 110, 1), (3, 200, 6)]
-    refused = [(4, 0, 32), (3, 100, 11), (3, 100, 2), (3, 102, 1), (3, 110, 1), (3, 200, 6)]
+    # holding 100..111: plc_clock, life_counter, p_m_sp, closed_loop_enable (the gap 103..109)
+    grouped = [(4, 0, 32), (3, 100, 12), (3, 200, 6)]
+    per_tag = [(4, 0, 32), (3, 100, 2), (3, 102, 1), (3, 110, 1), (3, 111, 1), (3, 200, 6)]
+    refused = [(4, 0, 32), (3, 100, 12), (3, 100, 2), (3, 102, 1), (3, 110, 1), (3, 111, 1), (3, 200, 6)]
     assert [p[1] for p in polls] == [
         refused,            # t=0: exception 2 -> this group tag by tag, the others stay grouped
         per_tag,            # t=30: no retry yet
@@ -95,7 +96,7 @@ def test_a_refused_group_falls_back_alone_and_is_retried_with_backoff(caplog):
     for result, _, _ in polls:
         assert result.comm_error is None and all(v.ok for v in result.values.values())
     warnings = [r.message for r in caplog.records if r.levelno >= logging.WARNING]
-    assert len(warnings) == 1 and "reading tags plc_clock, life_counter, p_m_sp one by one; " \
+    assert len(warnings) == 1 and "reading tags plc_clock, life_counter, p_m_sp, closed_loop_enable one by one; " \
         "the grouped read is tried again in 60 s" in warnings[0]
     assert sum("is accepted again" in r.message for r in caplog.records) == 1
 

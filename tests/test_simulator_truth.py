@@ -105,7 +105,8 @@ def test_each_familys_optimum_differs_from_plant_yamls_curves(family):
 
 
 def test_set_points_are_clamped_like_a_plc_write():
-    w = TruthModel(CFG.with_sections(control={"p_m_sp_limits_bar_g": [12.0, 20.0]})).window(
+    w = TruthModel(CFG.with_sections(control={"p_m_sp_limits_bar_g": [12.0, 20.0]},
+                                     remote_setpoint={"bounds_bar_g": [12.0, 20.0]})).window(
         [condition_row()])
     assert w.point_at(25.0).p_m_sp_barg == 20.0 and w.cop_at(25.0) == w.cop_at(20.0)
     assert w.point_at(8.0).p_m_sp_barg == 12.0 and w.cop_at(8.0) == w.cop_at(12.0)

@@ -41,10 +41,9 @@ def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
     assert (j["true_dCOP_pct"] < -LOSS_PCT).mean() <= LOSS_SHARE, m
     # where it is confident it moves the plant the right way: predicted and true changes agree
     moved = conf[conf["p_m_sp_rec_barg"] != conf["p_m_sp_actual_barg"]]
-    # a confident move gains on average, and a move that loses stays within the regret bound (one
-    # lost 0.106 % on a day at 11.5 bar(g), where the true curve is flat to within 0.1 %)
-    assert moved["true_dCOP_pct"].mean() > 0.0, m
-    assert (moved["true_dCOP_pct"] >= -MAX_REGRET_PCT).all(), m
+    # a confident move never costs COP (with a dead band of 0.05 % three moves for a predicted
+    # +0.12..0.18 % lost 0.02..0.11 %: gains below the model's error are noise, dead_band_pct 0.2)
+    assert (moved["true_dCOP_pct"] >= -LOSS_PCT).all(), m
     # not confident means: keep the current set point (the contract of windows.csv)
     nc = w[(w["status"] == "ok") & ~w["advice_confident"].astype(bool)]
     assert (nc["p_m_sp_opt_barg"] == nc["p_m_sp_actual_barg"]).all()

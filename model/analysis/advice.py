@@ -235,6 +235,9 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    # the window's actual set point: the mean over all its samples (as windows.csv reports it; a
+    # window in which the set point changed must not get a third value from the check rows)
+    actual = float(data["p_m_sp"].mean())
     # the whole-window check on evenly spaced samples (all of them when check_rows >= len)
     keep = np.unique(np.linspace(0, len(data) - 1, min(int(s.check_rows), len(data))).round().astype(int))
     data = data.iloc[keep].reset_index(drop=True)
@@ -267,7 +270,6 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             d_n = float(np.nanmean(n_x - n_m)) if np.isfinite(n_m).any() else 0.0
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
     feasible = _feasible(learner, adaptive, offsets)
-    actual = float(data["p_m_sp"].mean())
     optimizer, sp_opt, p_opt = "search", None, None
     if sp_override is not None and math.isfinite(sp_override):
         p = ev.at(min(max(float(sp_override), lo), hi))

@@ -268,8 +268,8 @@ def plant_row(e: PlantEntry, o: PlantOutcome, out_dir: Path) -> dict:
         slope = float(np.polyfit(x, R[sel], 1)[0])
         row["R_th_f_rate_K_per_kW_per_day"] = slope
         row["R_th_f_rate_basis"] = (f"linear fit of {int(sel.sum())} windows over the last {np.ptp(x):.1f} d"
-                                    f"{' since the last CIP' if len(r.cips) else ''} (no forecast in "
-                                    "replay yet)")
+                                    f"{' since the last CIP' if len(r.cips) else ''} (the forecast's "
+                                    "rate: the plant's forecast.csv)")
     else:
         row["R_th_f_rate_basis"] = "too few windows since the last CIP for a rate"
     if len(r.cips):
@@ -315,10 +315,12 @@ def fleet_text(table) -> str:
     L.append("")
     L.append(f"{len(table)} plants, {len(table) - n_fail} replayed, {n_fail} failed")
     L.append("R_th,f now: median of the last day's windows; rate: a linear fit of the last "
-             f"{TREND_DAYS:g} days' windows since the last CIP (replay has no fouling forecast yet); "
+             f"{TREND_DAYS:g} days' windows since the last CIP (the forecast's rate is in each plant's "
+             "forecast.csv); "
              "removed: mean share of R_th,f each CIP removed; dCOP sp: the COP gain the model optimum "
              "offers over the actual set point (last day's mean; conf: share of those windows whose "
-             "advice is confident); cost/day: cost of fouling where replay prices it (not yet: '-')")
+             "advice is confident); cost/day: the cost of fouling against a clean evaporator (median of the "
+             "last day's windows)")
     return "\n".join(L)
 
 

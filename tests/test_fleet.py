@@ -81,6 +81,27 @@ def test_replay_through_a_process_pool_equals_the_sequential_replay(plant, day):
     assert not any(n.startswith("parallel replay") for n in seq.notes)
 
 
+def test_property_tables_agree_with_heos_row_by_row(plant, day):
+    """The fast path's measured side (model.proptable) against the equation of state on every row
+    (``use_tables(False)``: the switch ``hp-edge bench --only replay`` uses). Bounds: the tables'
+    stated accuracy (~1e-3 J/kg in h) carried into an efficiency ratio of ~1e5 J/kg differences."""
+    from model.measured import process
+    from model.proptable import use_tables
+    with time_limit(60):
+        fast = process(day, plant)
+        prev = use_tables(False)
+        try:
+            heos = process(day, plant)
+        finally:
+            use_tables(prev)
+    assert prev is True
+    assert (fast["usable"] == heos["usable"]).all() and (fast["reason"] == heos["reason"]).all()
+    for col, tol in (("T_e_sat_C", 1e-9), ("eta_is_LS_meas", 1e-7), ("eta_is_HS_meas", 1e-7),
+                     ("R_th_f_K_per_kW", 1e-12)):
+        d = (fast[col] - heos[col]).abs()
+        assert d.notna().sum() > 1000 and d.max() < tol, (col, d.max())
+
+
 # ---- (b) hp-edge fleet replay ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def fleet_dir(tmp_path_factory):

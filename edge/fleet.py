@@ -11,6 +11,10 @@ PLANTS.yaml (read by edge.yamlfile's strict loader; problems name the file, line
         initial_window: 2024-03-01T00:00/2024-03-01T01:30   # optional (else the first 90 minutes)
         window_hours: 2                  # optional
 
+PLANTS.yaml itself is checked up front (unknown or missing keys, duplicate names: exit 2 and
+nothing runs); each plant's files are read by its task, so a plant whose history or plant.yaml is
+missing or broken fails alone (fleet.csv status ``failed`` with the reason) and the others go on.
+
 Each plant runs as one task (``replay_plant``) in a worker: it reads its own plant.yaml and
 history (paths must be readable by the workers: always with the embedded LocalCluster, on a shared
 file system with a remote scheduler), replays sequentially (one core per plant: plants are the
@@ -110,8 +114,10 @@ def load_plants(path: str | Path) -> list[PlantEntry]:
             if name in seen:
                 sec.problem("name", f"{name!r} is used twice (first by plant {seen[name]})")
             seen.setdefault(name, i + 1)
-        plant = sec.path("plant", base, must_exist=True) if "plant" in item else None
-        hist = sec.path("history", base, must_exist=True) if "history" in item else None
+        # the files are read by the plant's task (in a worker, which may see another file system
+        # than this client): a missing one fails that plant with its reason, not the whole fleet
+        plant = sec.path("plant", base) if "plant" in item else None
+        hist = sec.path("history", base) if "history" in item else None
         state = None
         if "state" in item and item["state"] is not None:
             state = sec.path("state", base)
@@ -262,8 +268,8 @@ def plant_row(e: PlantEntry, o: PlantOutcome, out_dir: Path) -> dict:
         slope = float(np.polyfit(x, R[sel], 1)[0])
         row["R_th_f_rate_K_per_kW_per_day"] = slope
         row["R_th_f_rate_basis"] = (f"linear fit of {int(sel.sum())} windows over the last {np.ptp(x):.1f} d"
-                                    f"{' since the last CIP' if len(r.cips) else ''} (no forecast in "
-                                    "replay yet)")
+                                    f"{' since the last CIP' if len(r.cips) else ''} (the forecast's "
+                                    "rate: the plant's forecast.csv)")
     else:
         row["R_th_f_rate_basis"] = "too few windows since the last CIP for a rate"
     if len(r.cips):
@@ -309,10 +315,12 @@ def fleet_text(table) -> str:
     L.append("")
     L.append(f"{len(table)} plants, {len(table) - n_fail} replayed, {n_fail} failed")
     L.append("R_th,f now: median of the last day's windows; rate: a linear fit of the last "
-             f"{TREND_DAYS:g} days' windows since the last CIP (replay has no fouling forecast yet); "
+             f"{TREND_DAYS:g} days' windows since the last CIP (the forecast's rate is in each plant's "
+             "forecast.csv); "
              "removed: mean share of R_th,f each CIP removed; dCOP sp: the COP gain the model optimum "
              "offers over the actual set point (last day's mean; conf: share of those windows whose "
-             "advice is confident); cost/day: cost of fouling where replay prices it (not yet: '-')")
+             "advice is confident); cost/day: the cost of fouling against a clean evaporator (median of the "
+             "last day's windows)")
     return "\n".join(L)
 
 

@@ -57,6 +57,12 @@ XTOL = 0.01               # bar, Brent tolerance on the set point
 SUBSAMPLE = 12            # rows used by the coarse scan
 BOUND_MARGIN = 0.05       # bar, kept clear of p_e and p_c
 PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
+# The search's shortcuts (issue 12), each switchable so that ``hp-edge bench --only replay`` can
+# compare the fast path with the plain search on the same data (module switches: set them before a
+# sequential replay in this process; worker processes keep the defaults):
+TWO_LEVEL_SCAN = True     # every second grid point first, then the neighbours of feasible ones
+EDGE_SHORTCUT = True      # no Brent search when the best grid point is the feasible stretch's edge
+BRENT_FROM_BRACKET = True # Brent's parabolic steps from the scan's bracket instead of a bounded search
 SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
 GUESS_BAR = 1.0           # bar: a row's own solution this close in set point is its warm start
 PLATEAU_REUSE_BAR = 0.01  # bar: below a row's floating p_m by this, its plateau solution is reused
@@ -287,7 +293,7 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     # point range narrower than one coarse step, between two first-level points)
     scan = np.full(len(grid), -np.inf)
     done = np.zeros(len(grid), dtype=bool)
-    for k in range(0, len(grid), 2):
+    for k in range(0, len(grid), 2 if TWO_LEVEL_SCAN else 1):
         scan[k], done[k] = scan_value(float(grid[k])), True
     if len(grid) % 2 == 0:
         scan[-1], done[-1] = scan_value(float(grid[-1])), True
@@ -321,11 +327,11 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     if b - a > xtol:
         x0 = float(grid[i])
         inward = x0 + xtol if x0 == a else (x0 - xtol if x0 == b else None)
-        if inward is not None and neg(inward) > neg(x0):
+        if EDGE_SHORTCUT and inward is not None and neg(inward) > neg(x0):
             # the best grid point sits at the edge of the feasible stretch and the COP falls away
             # from it: the optimum is the edge itself (to within xtol), no search needed
             pass
-        elif a < x0 < b and neg(x0) < min(neg(a), neg(b)):
+        elif BRENT_FROM_BRACKET and a < x0 < b and neg(x0) < min(neg(a), neg(b)):
             # the scan already brackets the optimum (the grid point beats both neighbours): Brent's
             # parabolic steps from that bracket (its points are cached) need ~half the evaluations
             # of a bounded search that starts afresh; same tolerance

@@ -157,12 +157,44 @@ class PropertyTables:
         return np.where(ok, x, rng[0]), ok
 
 
+class NoTables:
+    """A stand-in that answers nothing (NaN everywhere): every caller then evaluates every row with
+    the scalar HEOS functions, as before the tables existed. ``use_tables(False)`` selects it, so a
+    benchmark can compare the tables with the equation of state on the same data."""
+
+    def sat(self, p) -> SatArrays:
+        nan = np.full(np.shape(p), np.nan)
+        return SatArrays(nan, nan, nan, nan, nan)
+
+    def T_sat(self, p) -> np.ndarray:
+        return np.full(np.shape(p), np.nan)
+
+    def vapour(self, p, T) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nan = np.full(np.broadcast(np.asarray(p), np.asarray(T)).shape, np.nan)
+        return nan, nan, nan
+
+    def isentropic(self, p, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.vapour(p, s)
+
+
 _LOCK = threading.Lock()
 _TABLES: dict[str, PropertyTables] = {}
+_ENABLED = True
 
 
-def get_tables(name: str = "Ammonia") -> PropertyTables:
-    """The fluid's tables, built on first use in this process (thread-safe; read-only after)."""
+def use_tables(enabled: bool) -> bool:
+    """Switch the tables on (the default) or off in this process (off: HEOS row by row, the exact
+    and slow path; for benchmarks). Returns the previous setting."""
+    global _ENABLED
+    prev, _ENABLED = _ENABLED, bool(enabled)
+    return prev
+
+
+def get_tables(name: str = "Ammonia") -> PropertyTables | NoTables:
+    """The fluid's tables, built on first use in this process (thread-safe; read-only after);
+    a ``NoTables`` when ``use_tables(False)``."""
+    if not _ENABLED:
+        return NoTables()
     t = _TABLES.get(name)
     if t is None:
         with _LOCK:

@@ -94,7 +94,8 @@ def register(sub) -> None:
                     help="also save the initial, dp_clean and last fouling results as state there")
     rp.add_argument("--workers", type=_workers, default=1, metavar="N",
                     help="processes for the windows' analysis: 1 (default) in this process, N > 1 a "
-                         "process pool of N; the results are identical")
+                         "process pool of N; the results equal a sequential replay with the surrogate "
+                         "off (a parallel replay searches in every window)")
     rp.set_defaults(func=cmd_replay)
 
 

@@ -44,7 +44,9 @@ def register(sub) -> None:
     b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
                    help="comma-separated sections (model,simulator,analysis,gateway,inputs; also "
                         "advice, closed_loop, and cip: the CIP policies on 120 simulated days, about "
-                        "15 min; these run longer)")
+                        "15 min; replay: one 30-day replay on one core against the plain path and a "
+                        "full-window reference; fleet: 8 plant-months on a LocalCluster with 1 and 2 "
+                        "workers (needs the [fleet] extra); these run longer)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -145,7 +147,9 @@ def cmd_bench(args) -> int:
              "advice": ("edge.bench_advice", "bench_advice"),
              "inputs": ("edge.bench_inputs", "bench_inputs"),
              "closed_loop": ("edge.bench_closed_loop", "bench_closed_loop"),
-             "cip": ("edge.bench_cip", "bench_cip")}
+             "cip": ("edge.bench_cip", "bench_cip"),
+             "replay": ("edge.bench_fleet", "bench_replay"),
+             "fleet": ("edge.bench_fleet", "bench_fleet")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",
@@ -160,6 +164,8 @@ def cmd_bench(args) -> int:
             result[s] = func(params, grid_levels=args.grid_levels)
         elif s == "cip":
             result[s] = func(params, progress=_day_progress)
+        elif s in ("replay", "fleet"):
+            result[s] = func(params)
         else:
             result[s] = func()
     text = json.dumps(result, indent=2, default=float)

@@ -1,0 +1,216 @@
+"""Issue 12: replay through the Executor seam and ``hp-edge fleet replay`` on a Dask LocalCluster.
+
+Everything runs on 127.0.0.1 with ports chosen at run time (the LocalCluster's scheduler port 0, no
+dashboard); every test is bounded in time (subprocesses by ``timeout``, in-process work by an alarm).
+Simulated histories are short (half a day to a day of one-minute samples): the point is that the
+seam and the fleet give the same numbers as one process, not the analysis itself (test_replay.py).
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from edge.cli import main
+from model.analysis.replay import ReplaySettings, replay
+from simulator.export import export_history
+
+ROOT = Path(__file__).resolve().parent.parent
+PLANT_YAML = ROOT / "config" / "plant.yaml"
+FLEET_TIMEOUT_S = 150      # the whole fleet command: cluster start, two half-day plants, shutdown
+BROKEN_REASON = "{}: no such file"     # edge.io.history's message for a missing history file
+
+
+@contextmanager
+def time_limit(seconds: int):
+    """Fail (not hang) when the block takes longer than ``seconds`` of wall time (SIGALRM: the
+    main thread, Linux)."""
+    def fire(signum, frame):
+        raise TimeoutError(f"took longer than {seconds} s")
+    old = signal.signal(signal.SIGALRM, fire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+# ---- (a) the Executor seam --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def day():
+    """One simulated day (simulator.export, seed 5): ~11 windows of 2 h after the initial 90 min."""
+    return export_history(1.0, seed=5).history
+
+
+def test_replay_through_a_process_pool_equals_the_sequential_replay(plant, day):
+    """Pass 2 of every window in a spawned process pool (CoolProp state and property tables built
+    there) gives the same windows as one process with the surrogate off (a parallel replay always
+    searches: the surrogate tracker is sequential). Compared exactly: the seam promises identical
+    numbers (deterministic solver starts, tables built the same way in every process), and a
+    tolerance would hide a window that depended on its predecessor's state."""
+    s = ReplaySettings.from_config(plant.extra, surrogate=False)
+    with time_limit(120):
+        seq = replay(day, plant, s)
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=2, mp_context=ctx) as pool:
+            par = replay(day, plant, ReplaySettings.from_config(plant.extra), executor=pool)
+    assert len(seq.windows) >= 8 and (seq.windows["status"] == "ok").sum() >= 8
+    assert seq.windows["optimization_ok"].astype(bool).sum() >= 8      # the search ran: its numbers compared
+    pd.testing.assert_frame_equal(seq.windows, par.windows, check_exact=True)
+    pd.testing.assert_frame_equal(seq.samples, par.samples, check_exact=True)
+    pd.testing.assert_frame_equal(seq.cips, par.cips, check_exact=True)
+    assert seq.compressors == par.compressors
+    assert any(n.startswith("parallel replay: the set-point search in every window") for n in par.notes)
+    assert not any(n.startswith("parallel replay") for n in seq.notes)
+
+
+def test_property_tables_agree_with_heos_row_by_row(plant, day):
+    """The fast path's measured side (model.proptable) against the equation of state on every row
+    (``use_tables(False)``: the switch ``hp-edge bench --only replay`` uses). Bounds: the tables'
+    stated accuracy (~1e-3 J/kg in h) carried into an efficiency ratio of ~1e5 J/kg differences."""
+    from model.measured import process
+    from model.proptable import use_tables
+    with time_limit(60):
+        fast = process(day, plant)
+        prev = use_tables(False)
+        try:
+            heos = process(day, plant)
+        finally:
+            use_tables(prev)
+    assert prev is True
+    assert (fast["usable"] == heos["usable"]).all() and (fast["reason"] == heos["reason"]).all()
+    for col, tol in (("T_e_sat_C", 1e-9), ("eta_is_LS_meas", 1e-7), ("eta_is_HS_meas", 1e-7),
+                     ("R_th_f_K_per_kW", 1e-12)):
+        d = (fast[col] - heos[col]).abs()
+        assert d.notna().sum() > 1000 and d.max() < tol, (col, d.max())
+
+
+# ---- (b) hp-edge fleet replay ------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def fleet_dir(tmp_path_factory):
+    """PLANTS.yaml with two half-day plants (own plant.yaml and history each) and a third whose
+    history file does not exist."""
+    d = tmp_path_factory.mktemp("fleet")
+    for name, seed in (("north-1", 11), ("south-2", 12)):
+        (d / name).mkdir()
+        shutil.copy(PLANT_YAML, d / name / "plant.yaml")
+        export_history(0.5, d / name / "history.csv", seed=seed)
+    (d / "broken-3").mkdir()
+    shutil.copy(PLANT_YAML, d / "broken-3" / "plant.yaml")
+    (d / "PLANTS.yaml").write_text(
+        "plants:\n"
+        "  - name: north-1\n    plant: north-1/plant.yaml\n    history: north-1/history.csv\n"
+        "  - name: broken-3\n    plant: broken-3/plant.yaml\n    history: broken-3/history.csv\n"
+        "  - name: south-2\n    plant: south-2/plant.yaml\n    history: south-2/history.csv\n"
+        "    window_hours: 2\n", encoding="utf-8")
+    return d
+
+
+@pytest.fixture(scope="module")
+def fleet_run(fleet_dir):
+    out = fleet_dir / "out"
+    proc = subprocess.run([sys.executable, "-m", "edge.cli", "fleet", "replay", str(fleet_dir / "PLANTS.yaml"),
+                           "--out", str(out), "--workers", "2"], capture_output=True, text=True,
+                          timeout=FLEET_TIMEOUT_S, cwd=fleet_dir, env=_env())
+    return proc, out
+
+
+def test_fleet_replay_reports_the_broken_plant_and_replays_the_others(fleet_run, fleet_dir):
+    proc, out = fleet_run
+    assert proc.returncode == 0, proc.stderr[-3000:]      # 1 only when every plant failed
+    t = pd.read_csv(out / "fleet.csv", keep_default_na=False)
+    assert list(t["name"]) == ["north-1", "broken-3", "south-2"]          # PLANTS.yaml's order
+    assert list(t["status"]) == ["ok", "failed", "ok"]
+    broken = t.set_index("name").loc["broken-3"]
+    assert broken["reason"] == BROKEN_REASON.format(fleet_dir.resolve() / "broken-3" / "history.csv")
+    assert broken["out_dir"] == ""
+    assert not (out / "broken-3").exists()
+    assert "3 plants, 2 replayed, 1 failed" in proc.stdout
+    assert (out / "fleet.txt").read_text().splitlines()[-2] == "3 plants, 2 replayed, 1 failed"
+    ok = t[t["status"] == "ok"].set_index("name")
+    for name in ("north-1", "south-2"):
+        row = ok.loc[name]
+        assert row["period_start"] == "2024-03-01T00:00:00+00:00"
+        assert row["reason"] == "" and Path(row["out_dir"]) == out / name
+        assert int(row["windows_ok"]) >= 3 and float(row["days"]) == pytest.approx(0.5, abs=0.01)
+        assert 0.0 < float(row["R_th_f_now_K_per_kW"]) < 2e-3
+        for f in ("windows.csv", "cip.csv", "forecast.csv", "samples.csv", "summary.txt", "meta.json",
+                  "compressors.json", "initial_calibration.json", "dp_clean.json"):
+            assert (out / name / f).is_file(), f"{name}/{f}"
+
+
+def test_a_fleet_plant_equals_a_single_process_replay(fleet_run, fleet_dir, tmp_path):
+    """The plant replayed on a cluster worker and ``hp-edge replay`` of the same files in this
+    process write the same tables, byte for byte."""
+    proc, out = fleet_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    single = tmp_path / "single"
+    with time_limit(90):
+        assert main(["replay", str(fleet_dir / "south-2" / "history.csv"), "--out", str(single),
+                     "--config", str(fleet_dir / "south-2" / "plant.yaml")]) == 0
+    for f in ("windows.csv", "cip.csv", "forecast.csv", "samples.csv"):
+        assert (out / "south-2" / f).read_bytes() == (single / f).read_bytes(), f
+    for f in ("compressors.json", "initial_calibration.json", "dp_clean.json", "surrogate_tracker.json"):
+        a, b = (json.loads((d / f).read_text()) for d in (out / "south-2", single))
+        for k in ("saved_at", "run_time_s"):      # when the file was written, how long it took
+            a.pop(k, None), b.pop(k, None)
+        assert a == b, f
+
+
+# ---- (c) PLANTS.yaml errors ---------------------------------------------------------------------------
+def _plants(tmp_path, text: str) -> Path:
+    shutil.copy(PLANT_YAML, tmp_path / "plant.yaml")
+    (tmp_path / "h.csv").write_text("timestamp\n", encoding="utf-8")
+    p = tmp_path / "PLANTS.yaml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+@pytest.mark.parametrize("text, message", [
+    ("plants:\n  - name: a\n    plant: plant.yaml\n    histroy: h.csv\n",
+     "PLANTS.yaml: line 4: plant 1 'a': key 'histroy': unknown key (did you mean 'history'?); allowed: "
+     "name, plant, history, state, initial_window, window_hours"),
+    ("plants:\n  - name: a\n    plant: plant.yaml\n    history: h.csv\n"
+     "  - name: a\n    plant: plant.yaml\n    history: h.csv\n",
+     "PLANTS.yaml: line 5: plant 2 'a': key 'name': 'a' is used twice (first by plant 1)"),
+    ("plants:\n  - name: a\n    plant: plant.yaml\n    history: h.csv\nworkers: 4\n",
+     "PLANTS.yaml: line 5: key 'workers': unknown key; allowed: plants"),
+], ids=["unknown-key", "duplicate-name", "unknown-top-key"])
+def test_plants_yaml_errors_exit_2_naming_file_plant_and_key(tmp_path, capsys, monkeypatch, text, message):
+    p = _plants(tmp_path, text)
+    monkeypatch.chdir(tmp_path)
+    with time_limit(30):
+        rc = main(["fleet", "replay", "PLANTS.yaml", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert f"hp-edge fleet replay: {message}" in err.splitlines(), err
+    assert not (tmp_path / "out").exists()          # nothing ran, nothing written
+    assert p.exists()
+
+
+# ---- (d) the daemon does not import dask ---------------------------------------------------------------
+def test_gateway_and_cli_do_not_import_dask():
+    code = ("import sys, edge.service, edge.cli, edge.fleet, edge.commands.fleet_cmds\n"
+            "from edge.cli import main\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed'))\n"
+            "assert not bad, bad\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          cwd=ROOT, env=_env())
+    assert proc.returncode == 0, proc.stderr

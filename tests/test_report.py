@@ -428,6 +428,21 @@ def test_export_history_round_trip_replays_like_the_original(gateway_db, synthet
         np.testing.assert_allclose(b[c], a[c], atol=COP_TOL)
     ca, cb = pd.read_csv(replay_dir / "cip.csv"), pd.read_csv(rep2 / "cip.csv")
     assert list(ca["cip_start"]) == list(cb["cip_start"])
+    # the other two readers docs/deploy.md names: commissioning from the gateway's own data, and a
+    # report with the export as its per-sample data
+    # (this fixture's first 90 minutes put two factors at a bound: refused, exit 2, unless --force;
+    # then the saved commissioning is the replay's own initial calibration of the same minutes)
+    state = work / "state_from_export"
+    args = ["calibrate", "initial", str(out), "--state-dir", str(state), "--config", PLANT]
+    assert cli_main(args) == 2 and not (state / "initial_calibration.json").exists()
+    assert cli_main(args + ["--force"]) == 0
+    doc = json.loads((state / "initial_calibration.json").read_text(encoding="utf-8"))
+    ref = json.loads((rep2 / "initial_calibration.json").read_text(encoding="utf-8"))
+    for k, v in ref["params"].items():
+        assert doc["params"][k] == pytest.approx(v, abs=1e-3), k
+    html = work / "from_export.html"
+    assert cli_main(["report", str(rep2), "--data", str(out), "--out", str(html), "--config", PLANT]) == 0
+    assert html.stat().st_size > 50_000 and "<img" in html.read_text(encoding="utf-8")
 
 
 def test_export_history_period_and_quality(gateway_db, work, capsys):

@@ -290,7 +290,38 @@ def test_report_from_gateway_history(gateway_report, gateway_db, work):
     by_hand = simulate_batch(row, with_fouling(fixed, adv["R_th_f"].iloc[latest],
                                                adv["CF_dp_f"].iloc[latest]), columns=("COP",))
     assert ts["COP_adaptive"][1][i] == pytest.approx(by_hand["COP"].iloc[0], rel=MODEL_RTOL)
-    assert "no forecast" in html
+    # twelve hours since commissioning: the gateway's windows carry no forecast yet, and it says so
+    assert data.forecast is not None and not data.forecast["R_th_f_forecast_K_per_kW"].notna().any()
+    assert "no fouling forecast in the period yet (it needs a day of windows since the last CIP or " \
+        "commissioning)" in html
+
+
+def test_gateway_report_draws_the_forecast_its_advice_rows_carry(gateway_db, work):
+    """The forecast the gateway made at each window's end (the window row in the advice table's
+    detail) is drawn with its band, as a replay's forecast.csv is."""
+    db = work / "forecast.sqlite"
+    shutil.copy(gateway_db, db)
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT ts, detail FROM advice ORDER BY ts").fetchall()
+        n = 0
+        for ts, detail in rows:
+            d = json.loads(detail)
+            w = d.get("window")
+            if not w:
+                continue
+            end = pd.Timestamp(float(ts), unit="s", tz="UTC")
+            w.update({"window_end": end.isoformat(), "forecast_at": (end + pd.Timedelta(days=7)).isoformat(),
+                      "R_th_f_forecast_K_per_kW": 4.0e-3 + n * 1e-5, "R_th_f_forecast_lo_K_per_kW": 3.5e-3,
+                      "R_th_f_forecast_hi_K_per_kW": 4.5e-3 + n * 1e-5})
+            con.execute("UPDATE advice SET detail = ? WHERE ts = ?", (json.dumps(d), ts))
+            n += 1
+    assert n >= 8
+    out = work / "gateway_forecast.html"
+    _report(["--history", str(db), "--state", str(gateway_db.parent / "state"), "--out", str(out)])
+    html = out.read_text(encoding="utf-8")
+    pts = figure_points(html)
+    assert pts["fouling"]["forecast"] == n and pts["fouling"]["forecast_hi"] == n
+    assert "Dash-dot: the fouling forecast" in html
 
 
 def test_gateway_report_subsamples_a_long_period_and_says_so(gateway_db, work, capsys):

@@ -380,17 +380,38 @@ def load_gateway(history_db: str | Path, state_dir: str | Path, params, plant: s
     if len(cips):
         for c in ("cip_start", "cip_end"):
             cips[c] = _times(cips[c])
-    notes.append("the gateway keeps no forecast: no fouling forecast in this report")
+    forecast = _forecast_from_advice(adv, params.ambient_pressure / 1e5, notes)
+    if forecast is None:
+        notes.append("the gateway's advice rows carry no fouling forecast (a gateway from before "
+                     "issue 10): no forecast in this report")
+    elif not forecast["R_th_f_forecast_K_per_kW"].notna().any():
+        notes.append("no fouling forecast in the period yet (it needs a day of windows since the "
+                     "last CIP or commissioning)")
     coverage = _coverage_from_samples(samples, "samples of the period") if len(samples) else None
     if coverage is None:
         notes.append("no samples in the period")
     return ReportData(
         kind="gateway", source=f"gateway history {history_db}, state {sd}", plant=plant,
         params=params, period=_period(start, end, samples, windows, {}), windows=windows,
-        cips=cips, forecast=None, samples=samples if len(samples) else None, state=state,
+        cips=cips, forecast=forecast, samples=samples if len(samples) else None, state=state,
         coverage=coverage, window_hours=window_hours,
         adaptive_rule="the latest advice at or before the sample (what the gateway knew then)",
         notes=notes, recomputed_samples=True)
+
+
+def _forecast_from_advice(adv: pd.DataFrame, ambient_bar: float, notes: list[str]) -> pd.DataFrame | None:
+    """The forecast rows (FORECAST_COLUMNS, as replay's forecast.csv) from the window row each
+    advice record of the gateway keeps (``detail["window"]``, the windows.csv row of that window);
+    None when no record has them."""
+    rows = []
+    for rec in adv.to_dict("records"):
+        w = (rec.get("detail") or {}).get("window") or {}
+        if all(k in w for k in FORECAST_COLUMNS):
+            rows.append({k: w[k] for k in FORECAST_COLUMNS})
+    if not rows:
+        return None
+    return _normalise(pd.DataFrame(rows), FORECAST_COLUMNS, {}, ambient_bar, "the advice table",
+                      notes, optional=set())
 
 
 def _windows_from_advice(adv: pd.DataFrame, window_hours: float, ambient_bar: float,

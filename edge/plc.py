@@ -375,6 +375,18 @@ class PlcClient:
             if wait > 0:
                 await asyncio.sleep(wait)
 
+    async def _fc16(self, dev: int, address: int, words: list[int], timeout: float | None) -> None:
+        """One FC16 request and the check of its echo (the advisory block and the set point)."""
+        reply = await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
+                                    timeout or self.plc.timeout_s, 16, address, len(words))
+        echo = (getattr(reply, "address", None), getattr(reply, "count", None))
+        if echo != (address, len(words)):
+            detail = (f"function 16 at {address}..{address + len(words) - 1}: the reply confirms "
+                      f"{echo[1]} registers at {echo[0]}")
+            self._lose("protocol error", detail)
+            raise PlcCommError("protocol error", detail)
+        self.failures.ok()
+
     async def _execute(self, call: Callable[[AsyncModbusTcpClient], Awaitable],
                        timeout: float, fc: int, address: int, count: int):
         """Run one request; map every outcome to a reply of function ``fc``, PlcExceptionReply
@@ -570,15 +582,7 @@ class PlcClient:
             if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w <= 0xFFFF:
                 raise ValueError(f"register word {w!r} is not an integer 0..65535")
         dev = self.plc.device_id
-        reply = await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
-                                    timeout or self.plc.timeout_s, 16, address, len(words))
-        echo = (getattr(reply, "address", None), getattr(reply, "count", None))
-        if echo != (address, len(words)):
-            detail = (f"function 16 at {address}..{address + len(words) - 1}: the reply confirms "
-                      f"{echo[1]} registers at {echo[0]}")
-            self._lose("protocol error", detail)
-            raise PlcCommError("protocol error", detail)
-        self.failures.ok()
+        await self._fc16(dev, address, words, timeout)
 
     async def write_advisory(self, words: Sequence[int], timeout: float | None = None) -> None:
         """Write the whole advisory block (exactly ``size`` words) in ONE FC16 request; with
@@ -617,15 +621,7 @@ class PlcClient:
                                        "outside the advisory block")
         dev = self.plc.device_id if tag.device_id is None else tag.device_id
         address = tag.address
-        reply = await self._execute(lambda c: c.write_registers(address, words, device_id=dev),
-                                    timeout or self.plc.timeout_s, 16, address, len(words))
-        echo = (getattr(reply, "address", None), getattr(reply, "count", None))
-        if echo != (address, len(words)):
-            detail = (f"function 16 at {address}..{address + len(words) - 1}: the reply confirms "
-                      f"{echo[1]} registers at {echo[0]}")
-            self._lose("protocol error", detail)
-            raise PlcCommError("protocol error", detail)
-        self.failures.ok()
+        await self._fc16(dev, address, words, timeout)
 
     async def read_setpoint(self, timeout: float | None = None) -> list[int]:
         """The set-point tag's registers as the PLC holds them now (one FC3 request)."""

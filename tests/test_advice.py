@@ -24,11 +24,11 @@ LOSS_SHARE = 0.05          # ... in at most this share of all windows
 
 @pytest.fixture(scope="module")
 def judged():
-    """Four days of the 'speed_peak' plant (its optimum lies ~3 bar below the data sheet's): a day
-    at 16 bar(g), one at 10 (the HS flat out), one at 13, one at 11.5; replayed causally and judged
-    on the truth."""
+    """Six days of the 'speed_peak' plant (its optimum lies ~3 bar below the data sheet's), the
+    bench's history (edge/bench_advice.py) in short: a day at 16 bar(g), one at 10 (the HS flat
+    out), one at 13, then back at 16; replayed causally and judged on the truth."""
     from edge.bench_advice import run_family
-    return run_family("speed_peak", 4.0, ((0.0, 16.0), (1.0, 10.0), (2.0, 13.0), (3.0, 11.5)))
+    return run_family("speed_peak", 6.0, ((0.0, 16.0), (1.0, 10.0), (2.0, 13.0), (3.0, 16.0)))
 
 
 def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
@@ -41,9 +41,8 @@ def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
     assert (j["true_dCOP_pct"] < -LOSS_PCT).mean() <= LOSS_SHARE, m
     # where it is confident it moves the plant the right way: predicted and true changes agree
     moved = conf[conf["p_m_sp_rec_barg"] != conf["p_m_sp_actual_barg"]]
-    # a confident move never costs COP (with a dead band of 0.05 % three moves for a predicted
-    # +0.12..0.18 % lost 0.02..0.11 %: gains below the model's error are noise, dead_band_pct 0.2)
-    assert (moved["true_dCOP_pct"] >= -LOSS_PCT).all(), m
+    # a confident move costs COP in at most the issue's share of the windows
+    assert (moved["true_dCOP_pct"] < -LOSS_PCT).sum() <= LOSS_SHARE * len(j), m
     # not confident means: keep the current set point (the contract of windows.csv)
     nc = w[(w["status"] == "ok") & ~w["advice_confident"].astype(bool)]
     assert (nc["p_m_sp_opt_barg"] == nc["p_m_sp_actual_barg"]).all()
@@ -51,6 +50,10 @@ def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
     # the first day (one set point only) cannot show where the optimum lies: it says so
     first = w[pd.to_datetime(w["window_start"]) < pd.to_datetime(w["window_start"].iloc[0]) + pd.Timedelta(hours=20)]
     assert not first["advice_confident"].astype(bool).any()
+    assert first["advice_note"].str.contains("the data do not show where the optimum lies").any()
+    # once the plant has run at three set points the advice speaks in most windows
+    late = w[pd.to_datetime(w["window_start"]) >= pd.to_datetime(w["window_start"].iloc[0]) + pd.Timedelta(days=3)]
+    assert late["advice_confident"].astype(bool).mean() >= 0.6, m
     assert m["R_th_f_abs_error_max_K_per_kW"] <= 0.2e-3          # fouling accuracy holds
 
 
@@ -176,3 +179,40 @@ def test_a_drifting_flow_meter_makes_the_window_unusable_for_calibration(plant):
     assert 6.0 < bad.heat_balance_pct < 9.0
     assert not bad.calibration_ok and not bad.optimization_ok
     assert math.isnan(bad.R_th_f_K_per_kW)
+
+
+def test_the_trusted_stretch_is_where_the_plant_has_run_plus_a_share_of_it(plant):
+    """The search's p_m stretch (model.analysis.advice.trusted_stretch): at one set point the plant
+    has shown no slope along p_m and the advice says so; after hours at a second set point the
+    stretch covers both, extended by extrapolation_share of its length (at most
+    extrapolation_max_bar), and the advice is confident."""
+    from model.analysis.advice import AdviceSettings
+    from simulator.config import load_simulator_config
+    from simulator.export import export_history
+    s = AdviceSettings()
+    cfg = load_simulator_config().with_compressor_family("speed_peak")
+    cfg = replace(cfg, control=replace(cfg.control, p_m_sp_schedule=((0.0, 16.0), (0.5, 13.0))),
+                  fouling=replace(cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
+    hist = export_history(1.0, cfg=cfg).history
+    chain, state, proc, *_ = _commissioned(plant, hist)
+    ts = pd.to_datetime(hist["timestamp"], utc=True)
+    usable = proc["usable"].to_numpy()
+
+    def window(h0, h1):
+        m = usable & (ts >= ts[0] + pd.Timedelta(hours=h0)).to_numpy() \
+            & (ts < ts[0] + pd.Timedelta(hours=h1)).to_numpy()
+        return chain.window(hist.loc[m].assign(timestamp=ts[m]), state)
+    first = [window(h, h + 2) for h in range(2, 12, 2)]
+    assert all(r.status == "ok" and not r.advice_confident for r in first)
+    assert all(r.p_m_sp_opt_barg == r.p_m_sp_actual_barg for r in first), [(r.p_m_sp_opt_barg, r.p_m_sp_actual_barg) for r in first]
+    assert any("the data do not show where the optimum lies" in r.advice_note for r in first)
+    for h in range(12, 24, 2):
+        both = window(h, h + 2)
+    t = both.detail["advice"]["trusted"]
+    lo, hi, ext = t["covered_lo"], t["covered_hi"], t["extension"]
+    assert lo < 13.0 and hi > 16.0                  # both set points are covered
+    assert ext == pytest.approx(min(s.extrapolation_max_bar, s.extrapolation_share * (hi - lo)))
+    assert both.advice_trusted_lo_barg == pytest.approx(lo - ext)
+    assert both.advice_trusted_hi_barg == pytest.approx(hi + ext)
+    assert both.advice_confident, both.advice_note
+    assert lo - ext - 1e-6 <= both.p_m_sp_model_opt_barg <= hi + ext + 1e-6

@@ -3,10 +3,13 @@
 For one window of usable samples and the adaptive model with the learned compressor curves:
 
 1. the COP-optimal p_m,sp by ``model.optimize.search`` on a few representative operating points of
-   the window (``representative_points``), restricted to the set points whose predicted compressor
-   operating points (pi, n) of both stages lie within the region the learned curves cover plus the
-   stated margin (``CompressorLearner.coverage_distance`` <= 1): the learned curves are not
-   extrapolated further;
+   the window (``representative_points``), restricted to the intermediate pressures the learned
+   curves vouch for (``trusted_stretch``): the stretch of p_m over which this window's compressor
+   operating points (pi, n) of both stages lie in the covered region (plus its margin), found on a
+   set-point grid, widened by ``extrapolation_share`` of its length (at most
+   ``extrapolation_max_bar``). A plant that has run over a wide range of p_m has shown the curves'
+   slope along it, and the search may go a share of that range further; the learned curves are not
+   extrapolated beyond;
 2. a dead band: the previous recommendation is kept unless the new optimum is worth more than
    ``dead_band_pct`` of COP over it in this window's conditions (an operator is not asked to chase
    noise);
@@ -19,7 +22,10 @@ For one window of usable samples and the adaptive model with the learned compres
 5. confidence. The advice is *low-confidence* (the block's status bit; the recommendation is then the
    current set point) when the curves are not learned yet, when fewer than ``min_coverage_share`` of the
    window's samples lie in the region the curves had covered before this window, when the learned
-   curve misses this window's measured eta_is by more than ``max_curve_residual`` on average, or when
+   curve misses this window's measured eta_is by more than ``max_curve_residual`` on average, when
+   the plant has run over less than ``min_covered_bar`` of p_m in conditions like the window's (at
+   one set point the data show no slope along p_m: where the optimum lies would come from the data
+   sheet), when the optimum lies beyond the trusted stretch (the COP still rises at its end), or when
    the expected gain is not larger than ``confidence_k`` standard deviations — unless both the gain
    and its uncertainty are below the dead band ("keep the set point" is then a confident answer: the
    model is sure that moving is not worth it).
@@ -52,13 +58,22 @@ class AdviceSettings:
     confidence_k: float = 1.0           # the gain must exceed k standard deviations
     min_coverage_share: float = 0.8     # of the window's samples inside the learned region
     max_curve_residual: float = 0.01    # |mean(eta_is measured - curve)| per stage [-]
-    dead_band_pct: float = 0.2          # move the recommendation only for more COP than this [%]:
-                                        # the model's error in a window's dCOP on compressors that
-                                        # are not the data sheet's is ~0.15-0.3 % (tests/test_advice)
-    inside_tolerance: float = 0.25      # confident only when the optimum's compressor operating
-                                        # points (and its neighbours') lie within this many margins
-                                        # of the bins the compressors have run in
-    neighbour_bar: float = 0.5          # the neighbours checked on either side of the optimum
+    dead_band_pct: float = 0.1          # move the recommendation only for more COP than this [%]:
+                                        # a kept recommendation costs the plant up to about this
+                                        # plus the model's error (0.2 % gave confident regrets of
+                                        # 0.4-0.5 % on plants following a daily cycle, 0.05 % moved
+                                        # more often for no gain: hp-edge bench --only advice)
+    extrapolation_share: float = 0.35   # the search may go beyond the stretch of p_m the plant has
+                                        # run over (in this window's conditions) by this share of
+                                        # that stretch's length ...
+    extrapolation_max_bar: float = 2.5  # ... and never by more than this [bar]
+    path_step_bar: float = 0.5          # set-point grid on which that stretch is found [bar]
+    gap_max_bar: float = 3.0            # not confident when the optimum lies in or next to (within
+                                        # half this) a stretch this wide the plant has not run in
+    min_covered_bar: float = 3.0        # confident only when the plant has run over at least this
+                                        # stretch of p_m in conditions like the window's [bar]: at
+                                        # one set point the data show no slope along p_m, and the
+                                        # optimum would be placed by the data sheet's curves
     seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
 
     @classmethod
@@ -104,6 +119,9 @@ class AdviceResult:
     n_eval_rows: int
     evaluations: int
     optimizer: str = "search"        # "search" | "surrogate" (the tracker's qualified form)
+    trusted: Trusted | None = None
+    trusted_lo_barg: float = math.nan   # the p_m stretch the learned curves vouch for (Trusted)
+    trusted_hi_barg: float = math.nan
 
 
 def _operating_points(p: Point, params: PlantParams) -> dict:
@@ -127,28 +145,85 @@ def _distance(learner: CompressorLearner, params: PlantParams, offsets: dict, p:
     return d
 
 
-def _feasible(learner: CompressorLearner | None, params: PlantParams, offsets: dict):
-    """Candidate filter: every evaluated row's (pi, n) per stage, less the model's offset from the
-    measured operating point at the actual set point, within the covered region + margin (only for
-    curves already learned). The offset keeps a model error in p_c or p_m from counting as
-    extrapolation: what is judged is how far the candidate moves the compressors from where the
-    plant is measured."""
-    if learner is None:
+def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
+    """The intermediate pressure of an evaluation (weighted mean over its rows) [bar(g)]."""
+    return float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=w)) - amb
+
+
+@dataclass(frozen=True)
+class Trusted:
+    """The stretch of intermediate pressure the learned curves vouch for in one window's conditions
+    [bar(g)]: covered_lo..covered_hi where the plant's compressors have run (the window's operating
+    points at those p_m lie within the covered (pi, n) region plus its margin), widened on both
+    sides by ``extension`` (a share of the covered stretch's length, at most a stated maximum): a
+    plant that has run over a wide range of p_m has shown the curves' slope, and the search may go
+    that much further; a plant that has only run at one p_m has shown no slope and gets almost no
+    extension."""
+    covered_lo: float
+    covered_hi: float
+    extension: float
+    gaps: tuple = ()                 # ((a, b), ...): stretches inside covered_lo..covered_hi wider
+                                     # than gap_max_bar where the plant has not run
+    path: tuple = ()                 # ((p_m [bar(g)], coverage distance [margins], set point
+                                     # [bar(g)], NaN: the actual ones), ...) by p_m
+
+    def gap_near(self, pm: float, reach: float) -> tuple | None:
+        """The first wide gap within ``reach`` bar of ``pm``, or None."""
+        for a, b in self.gaps:
+            if a - reach <= pm <= b + reach:
+                return a, b
         return None
-    stages = [st for st in STAGES if learner.learned(st, "eta_is")]
-    if not stages:
+
+    @property
+    def lo(self) -> float:
+        return self.covered_lo - self.extension
+
+    @property
+    def hi(self) -> float:
+        return self.covered_hi + self.extension
+
+
+def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: PlantParams,
+                    offsets: dict, lo: float, hi: float, s: AdviceSettings) -> Trusted | None:
+    """The window's ``Trusted`` stretch, from the evaluator's rows at set points every
+    ``path_step_bar`` over [lo, hi] and at the actual set points (None when no compressor curve is
+    learned yet, or when no set point puts the window's operating points inside the covered
+    region)."""
+    if learner is None or not any(learner.learned(st, "eta_is") for st in STAGES):
+        return None
+    amb = params.ambient_pressure / 1e5
+    path = []
+    for x in [None, *np.arange(lo, hi + 1e-9, s.path_step_bar)]:
+        p = ev.at(None if x is None else float(x))
+        if p.ok:
+            path.append((_pm_barg(p, ev.w, amb), _distance(learner, params, offsets, p),
+                         math.nan if x is None else float(x)))
+    path.sort()
+    pm = np.array([x for x, _, _ in path])
+    d = np.array([y for _, y, _ in path])
+    cov = np.flatnonzero(d <= 1.0)
+    if not len(cov):
+        return None
+    a, b = float(pm[cov[0]]), float(pm[cov[-1]])
+    # wide stretches between covered points where the path leaves the covered region
+    gaps = tuple((float(pm[i]), float(pm[j])) for i, j in zip(cov[:-1], cov[1:])
+                 if j > i + 1 and pm[j] - pm[i] > s.gap_max_bar)
+    return Trusted(a, b, min(s.extrapolation_max_bar, s.extrapolation_share * (b - a)), gaps,
+                   tuple((round(x, 4), round(y, 3), round(z, 4)) for x, y, z in path))
+
+
+def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
+    """Candidate filter: every row solves, and the intermediate pressure lies in the trusted stretch
+    (None: no restriction)."""
+    if trusted is None:
         return None
 
     def ok(p: Point) -> bool:
         if not np.isin(p.frame["status"].to_numpy(), SOLVED).all():
             return False
-        pts = _operating_points(p, params)
-        for st in stages:
-            pi, n = pts[st]
-            d_pi, d_n = offsets.get(st, (0.0, 0.0))
-            if not (learner.coverage_distance(st, pi - d_pi, n - d_n) <= 1.0).all():
-                return False
-        return True
+        if len(p.frame) != len(w):      # a subset of the rows (the search's probe): solving is all
+            return True
+        return trusted.lo - 1e-9 <= _pm_barg(p, w, amb) <= trusted.hi + 1e-9
     return ok
 
 
@@ -174,6 +249,7 @@ class AdviceDraft:
     adaptive: PlantParams
     learner: CompressorLearner | None
     offsets: dict                    # model - measured compressor operating points, per stage
+    trusted: Trusted | None          # the p_m stretch the learned curves vouch for
     lo: float                        # set-point range [bar(g)]
     hi: float
     actual: float                    # the window's actual set point (mean) [bar(g)]
@@ -269,7 +345,8 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             d_pi = float(np.nanmean(pi_x - pi_m)) if np.isfinite(pi_m).any() else 0.0
             d_n = float(np.nanmean(n_x - n_m)) if np.isfinite(n_m).any() else 0.0
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
-    feasible = _feasible(learner, adaptive, offsets)
+    trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s)
+    feasible = _feasible(trusted, ev.w, amb)
     optimizer, sp_opt, p_opt = "search", None, None
     if sp_override is not None and math.isfinite(sp_override):
         p = ev.at(min(max(float(sp_override), lo), hi))
@@ -315,30 +392,32 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     for st, r in resid.items():
         if math.isfinite(r) and abs(r) > s.max_curve_residual:
             reasons.append(f"the learned {st} curve misses this window's measured eta_is by {r:+.3f}")
-    if learner is not None and not reasons:
-        # the optimum and its neighbours on both sides must lie where the curves have data (on the
-        # HS plateau the lower neighbour is the same operating point): otherwise the model's slope
-        # there, which places the optimum, comes from the data sheet's curves
-        probes = [sp_opt, sp_opt + s.neighbour_bar]
-        pm = ev.at(sp_opt).frame["p_m_bar"].to_numpy(dtype=float) - amb
-        if p_opt.hs_saturated or np.any(pm > sp_opt + 0.01):
-            # on (or partly on) the HS plateau the set point does not move the plant below the
-            # floating p_m: what must be known is the plant just above the plateau
-            probes.append(float(np.nanmax(pm)) + s.neighbour_bar)
-        else:
-            probes.append(sp_opt - s.neighbour_bar)
-        d_opt = max(_distance(learner, adaptive, offsets, ev.at(min(max(x, lo), hi))) for x in probes)
-        if d_opt > s.inside_tolerance:
-            reasons.append(f"the model's optimum {sp_opt:.2f} bar(g) lies outside the region the "
-                           f"curves have learned from data ({d_opt:.2f} margins out within "
-                           f"+-{s.neighbour_bar:g} bar): the plant has not run near it yet")
+    if learner is not None and trusted is None and not reasons:
+        reasons.append("no set point puts this window's compressor operating points inside the "
+                       "region the learned curves cover")
+    if trusted is not None and not reasons and \
+            trusted.covered_hi - trusted.covered_lo < s.min_covered_bar:
+        reasons.append(f"in conditions like this window's the plant has run over p_m "
+                       f"{trusted.covered_lo:.2f}-{trusted.covered_hi:.2f} bar(g) only (less than "
+                       f"{s.min_covered_bar:g} bar): the data do not show where the optimum lies; a "
+                       f"few days at another set point will")
+    if trusted is not None and not reasons:
+        pm_opt = _pm_barg(ev.at(sp_opt), ev.w, amb)
+        gap = trusted.gap_near(pm_opt, 0.5 * s.gap_max_bar)
+        if gap is not None:
+            reasons.append(f"the plant has not run between p_m {gap[0]:.2f} and {gap[1]:.2f} bar(g) "
+                           f"in conditions like this window's, next to the model's optimum "
+                           f"{sp_opt:.2f} bar(g): the curves there are interpolated")
     if p_opt.beyond is not None:
-        reasons.append(f"the model's optimum lies beyond the region the learned curves cover "
-                       f"(a step to {sp_opt:.2f} bar(g) would gain {dcop_step:+.2f} %; operation "
-                       f"there teaches the curves the way on)")
+        where = (f"{trusted.lo:.2f}-{trusted.hi:.2f} bar(g): run over {trusted.covered_lo:.2f}-"
+                 f"{trusted.covered_hi:.2f}, extended by {trusted.extension:.2f}"
+                 if trusted is not None else "the learned region")
+        reasons.append(f"the model's optimum lies beyond the p_m the learned curves vouch for "
+                       f"({where}; a step to {sp_opt:.2f} bar(g) would gain {dcop_step:+.2f} %; "
+                       f"operation there teaches the curves the way on)")
     return AdviceDraft(
         settings=s, amb=amb, data=data, rows=rows, w=w, adaptive=adaptive, learner=learner,
-        offsets=offsets, lo=lo, hi=hi, actual=actual, sp_opt=float(sp_opt),
+        offsets=offsets, trusted=trusted, lo=lo, hi=hi, actual=actual, sp_opt=float(sp_opt),
         hs_saturated_opt=bool(p_opt.hs_saturated), COP_opt_rep=float(p_opt.COP), ref=ref, opt=opt,
         gm_p=gm_p, gm=gm, sd_opt=sd_opt, draws_ref=draws_ref, R_th_f_se_K_per_kW=R_th_f_se_K_per_kW,
         reasons=reasons, dcop_step=dcop_step, coverage_share=float(coverage_share), curve_residual=resid,
@@ -358,7 +437,7 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
         ev = Evaluator(d.rows, d.w, d.adaptive)
         p_prev = ev.at(previous_rec_barg)
-        feasible = _feasible(d.learner, d.adaptive, d.offsets)
+        feasible = _feasible(d.trusted, d.w, d.amb)
         if p_prev.ok and (feasible is None or feasible(p_prev)):
             gain = 100.0 * (d.COP_opt_rep / p_prev.COP - 1.0)
             if gain < s.dead_band_pct:
@@ -416,4 +495,7 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
         dQ_sink_gm_pct=100.0 * (rec.Q_sink_kW / gm_p.Q_sink_kW - 1.0) if gm_p.ok else math.nan,
         COP_actual_model=ref.COP, hs_saturated=bool(d.hs_saturated_opt) and sp_rec == sp_opt,
         coverage_share=float(d.coverage_share), curve_residual=dict(d.curve_residual),
-        n_samples=len(d.data), n_eval_rows=len(d.rows), evaluations=evaluations, optimizer=d.optimizer)
+        n_samples=len(d.data), n_eval_rows=len(d.rows), evaluations=evaluations, optimizer=d.optimizer,
+        trusted=d.trusted,
+        trusted_lo_barg=d.trusted.lo if d.trusted is not None else math.nan,
+        trusted_hi_barg=d.trusted.hi if d.trusted is not None else math.nan)

@@ -138,6 +138,8 @@ class WindowResult:
     dCOP_gm_pct: float = math.nan
     dQ_sink_gm_pct: float = math.nan
     hs_saturated_opt: bool = False
+    advice_trusted_lo_barg: float = math.nan    # the p_m stretch the learned curves vouch for
+    advice_trusted_hi_barg: float = math.nan
     optimizer: str = ""                         # "search" | "surrogate:basic" | "surrogate:extended"
     advice_confident: bool = False
     advice_note: str = ""
@@ -725,6 +727,8 @@ class AnalysisChain:
         res.dCOP_gm_pct = adv.dCOP_gm_pct
         res.dQ_sink_gm_pct = adv.dQ_sink_gm_pct
         res.hs_saturated_opt = adv.hs_saturated
+        res.advice_trusted_lo_barg = adv.trusted_lo_barg
+        res.advice_trusted_hi_barg = adv.trusted_hi_barg
         res.advice_confident = adv.confident
         res.advice_note = adv.note
         res.detail["advice"] = {k: v for k, v in asdict(adv).items()}

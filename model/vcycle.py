@@ -1,0 +1,326 @@
+"""Many operating points at once: ``model.cycle.solve`` vectorised over the rows of a frame.
+
+``solve_many(rows, params, p_m_sp=None, ls_mode="flag")`` answers what ``model.batch.solve_rows``
+answers row by row, for all rows together with numpy arrays: the same physics (``model.vflowsheet``
+evaluates the flowsheet of ``model.cycle._Point``), properties from spline tables of HEOS
+(``model.cycletables``), the compressors through their vectorised protocol (``eta_is_v``,
+``eta_vol_v``, ``speed_for_flow_v``; ``vectorized`` loops the scalar methods of a compressor class
+that does not provide them), and the scalar solver's path (``model.vsolve``), so that the status of
+every row is the scalar solver's and the solved values agree to ~1e-9.
+
+The reference is ``model.cycle.solve`` without a guess (a cold start), row by row: it is what a row
+gives on its own. ``solve_rows`` warm-starts each row from the previous one, and the scalar solver's
+outcome depends on its start where a trial point fails (see ``model.vsolve``): on a grid of set
+points the two differ in a few per cent of the rows (``solve_rows`` solves some rows at HS bound that
+the cold start fails with ``eta_out_of_range`` during its branch test).
+
+Rows the vectorised path cannot settle (outside the tables, the scalar path's nested secants, a
+floating LS whose search is not clean) are solved by ``model.cycle.solve`` (cold) one by one:
+``VResult.fallback_rows`` counts them. Units at the interface are those of ``model.batch`` (degC,
+m3/h, bar(g) in; bar absolute, degC, kW, rpm out); SI inside.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from .batch import INPUT_COLUMNS, OUTPUT_KEYS, inputs_from_row, result_row
+from .cycle import LS_MODES, LS_SPEED_LOOSE, InfeasibleOperation, ModelError, solve
+from .cycletables import get_cycle_tables
+from .fluid import get_fluid
+from .params import Compressor, PlantParams
+from .units import BAR, C_to_K, K_to_C, Pa_to_barg, barg_to_Pa, m3h_to_m3s
+from .vflowsheet import Flowsheet
+from .vfloat import float_ls
+from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
+
+SOLVED_FLAGS = ("ls_speed_high", "ls_speed_low", "negative_pinch")
+_PROTOCOL = (("eta_is_at", "eta_is_v"), ("eta_vol_at", "eta_vol_v"), ("speed_for_flow", "speed_for_flow_v"))
+
+
+# --------------------------------------------------------------------------------------------------
+# the compressor protocol
+# --------------------------------------------------------------------------------------------------
+def _owner(cls, name: str):
+    for k in cls.__mro__:
+        if name in k.__dict__:
+            return k
+    return None
+
+
+class _Looped:
+    """The vectorised protocol for a compressor that has only the scalar methods: loops them."""
+
+    def __init__(self, comp: Compressor) -> None:
+        self.comp = comp
+
+    def eta_is_v(self, pi, n) -> np.ndarray:
+        pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        return np.array([self.comp.eta_is_at(a, b) for a, b in zip(pi.tolist(), n.tolist())])
+
+    def eta_vol_v(self, pi, n) -> np.ndarray:
+        pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        return np.array([self.comp.eta_vol_at(a, b) for a, b in zip(pi.tolist(), n.tolist())])
+
+    def speed_for_flow_v(self, m, rho_suc, pi, n0=None):
+        m, rho_suc, pi = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (m, rho_suc, pi)))
+        n0 = np.ones(m.shape) if n0 is None else np.broadcast_to(np.asarray(n0, dtype=float), m.shape)
+        out = np.full((len(m), 2), np.nan)
+        for k, (a, b, c, d) in enumerate(zip(m.tolist(), rho_suc.tolist(), pi.tolist(), n0.tolist())):
+            if not all(map(math.isfinite, (a, b, c))):
+                continue
+            try:
+                out[k] = self.comp.speed_for_flow(a, b, c, d if math.isfinite(d) else 1.0)
+            except (ValueError, ZeroDivisionError):
+                pass
+        return out[:, 0], out[:, 1]
+
+
+def vectorized(comp: Compressor):
+    """``comp`` itself when its class provides the vectorised protocol for every scalar method it
+    defines (the vectorised method is defined in the same class as the scalar one, or below it);
+    otherwise an adapter that loops the scalar methods (a subclass that overrides ``eta_is_at`` but
+    inherits ``Compressor.eta_is_v`` would get the base class's polynomial: never used)."""
+    cls = type(comp)
+    for scalar, vec in _PROTOCOL:
+        o_v, o_s = _owner(cls, vec), _owner(cls, scalar)
+        if o_v is None or not issubclass(o_v, o_s):
+            return _Looped(comp)
+    return comp
+
+
+# --------------------------------------------------------------------------------------------------
+# the result
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class VResult:
+    """Outputs of ``solve_many``: ``values[key]`` (or ``result.key``) for every key of
+    ``model.batch.OUTPUT_KEYS`` (bar absolute, degC, kW, rpm; booleans for hs_saturated,
+    ls_saturated; NaN where a row has no solution), ``status`` and ``reason`` per row (the codes of
+    ``model.batch.solve_rows``), ``branch`` ("sp", "hs_max", "hs_min", "" unsolved), ``fallback``
+    (rows solved by the scalar path) and their count ``fallback_rows``."""
+    values: dict
+    status: np.ndarray
+    reason: np.ndarray
+    branch: np.ndarray
+    fallback: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def fallback_rows(self) -> int:
+        return int(self.fallback.sum())
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.values[key]
+
+    def __getattr__(self, key: str):
+        values = self.__dict__.get("values")
+        if values is not None and key in values:
+            return values[key]
+        raise AttributeError(key)
+
+    def solved(self) -> np.ndarray:
+        """Rows with outputs: 'ok' and the flagged statuses."""
+        return np.isin(self.status, ("ok",) + SOLVED_FLAGS)
+
+    def frame(self, columns: tuple[str, ...] = OUTPUT_KEYS, index=None) -> pd.DataFrame:
+        """The frame of ``model.batch.frame_of``: ``columns`` (floats, NaN where unsolved; the
+        booleans as 1.0/0.0) plus status and reason."""
+        n = len(self.status)
+        solved = self.solved()
+        out = {}
+        for k in columns:
+            v = np.asarray(self.values[k], dtype=float)
+            out[k] = np.where(solved, v, np.nan)
+        frame = pd.DataFrame(out, index=index if index is not None else pd.RangeIndex(n))
+        frame["status"] = np.asarray(self.status, dtype=object)
+        frame["reason"] = np.asarray(self.reason, dtype=object)
+        return frame
+
+
+# --------------------------------------------------------------------------------------------------
+# solve
+# --------------------------------------------------------------------------------------------------
+def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
+    missing = [c for c in INPUT_COLUMNS if c not in rows.columns and not (c == "p_m_sp" and p_m_sp is not None)]
+    if missing:
+        raise KeyError(f"input columns missing: {', '.join(missing)}")
+    n = len(rows)
+    cols = {c: np.asarray(rows[c], dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
+    if p_m_sp is not None:
+        cols["p_m_sp"] = np.broadcast_to(np.asarray(p_m_sp, dtype=float), (n,)).copy()
+    return cols
+
+
+def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag") -> VResult:
+    """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
+    m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
+    as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
+    LS saturates at its speed bound and T_source,out floats). Returns a ``VResult``."""
+    if ls_mode not in LS_MODES:
+        raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
+    t0 = time.process_time()
+    amb_bar = params.ambient_pressure / BAR
+    cols = _inputs(rows, p_m_sp, amb_bar)
+    n = len(rows)
+    fluid = get_fluid(params.fluid, params.backend)
+    tab = get_cycle_tables(params.fluid)
+    status = np.full(n, "", dtype=object)
+    reason = np.full(n, "", dtype=object)
+    fallback = np.zeros(n, dtype=bool)
+    # ---- inputs (SI) and the checks the scalar solver makes before iterating
+    fin = np.all([np.isfinite(cols[c]) for c in INPUT_COLUMNS], axis=0) if n else np.zeros(0, bool)
+    for i in np.flatnonzero(~fin):
+        bad = [c for c in INPUT_COLUMNS if not math.isfinite(cols[c][i])]
+        status[i], reason[i] = "bad_input", f"missing or non-finite: {', '.join(bad)}"
+    z = lambda a: np.where(fin, a, 1.0)   # noqa: E731  (placeholders in rows already decided)
+    T_si, T_so = C_to_K(z(cols["T_source_in"])), C_to_K(np.where(fin, cols["T_source_out"], 0.0))
+    T_ki = C_to_K(z(cols["T_sink_in"]))
+    V_s, V_k = m3h_to_m3s(z(cols["V_source"])), m3h_to_m3s(z(cols["V_sink"]))
+    p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
+    fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k)
+    _precheck(fs, fluid, p_sp, status, reason, fallback)
+    T_m_sp = tab.T_sat(p_sp)
+    fallback |= (status == "") & ~np.isfinite(T_m_sp)
+    T_c_max = fluid.sat_p(min(params.p_c_max, fluid.p_crit * 0.98)).T
+    todo = np.flatnonzero((status == "") & ~fallback)
+    out = Outcome(n)
+    if len(todo):
+        solve_cold(fs, todo, T_m_sp, p_sp, T_c_max, out)
+    t1 = time.process_time()
+    ls_limit = np.full(n, "", dtype=object)
+    if ls_mode == "float" and len(todo):
+        float_ls(fs, todo, T_m_sp, p_sp, T_c_max, out, ls_limit)
+    t2 = time.process_time()
+    for i in todo:
+        if out.code[i] == FALLBACK:
+            fallback[i] = True
+        elif out.code[i]:
+            status[i], reason[i] = out.code[i], out.msg[i]
+    solved = np.flatnonzero((status == "") & ~fallback)
+    values = _empty_values(n)
+    if len(solved):
+        _assemble(fs, solved, out, ls_limit, values, status, reason, fallback, amb_bar)
+    t3 = time.process_time()
+    branch = np.array(["", "sp", "hs_max", "hs_min"], dtype=object)[np.where(
+        (status == "") & ~fallback, out.branch + 1, 0)]
+    for i in np.flatnonzero(fallback):
+        branch[i] = _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason)
+    status[(status == "")] = "ok"
+    timings = {"cold_path_s": t1 - t0, "ls_float_s": t2 - t1, "assemble_s": t3 - t2,
+               "fallback_s": time.process_time() - t3}
+    return VResult(values, status, reason, branch, fallback, timings)
+
+
+def _precheck(fs: Flowsheet, fluid, p_sp, status, reason, fallback) -> None:
+    """The checks of ``_Point`` and ``_solve`` before any iteration, in their order."""
+    for i in np.flatnonzero(status == ""):
+        C, dT = fs.C_s[i], fs.T_si[i] - fs.T_so[i]
+        if not (C > 0.0 and dT > 0.0):
+            status[i] = "bad_source"
+            reason[i] = (f"source must be cooled with positive flow (V_source={fs.V_s[i]:.4g} m3/s, "
+                         f"T_in-T_out={dT:.4g} K)")
+        elif not fs.T_e[i] > fluid.T_triple + 1.0:
+            if math.isfinite(fs.T_e[i]):
+                status[i] = "T_e_low"
+                reason[i] = (f"evaporating temperature {K_to_C(fs.T_e[i]):.2f} degC is below the "
+                             "fluid's range")
+            else:
+                fallback[i] = True
+        elif not fs.src_ok[i]:
+            fallback[i] = True                # outside the tables (or above the critical point)
+        elif not fs.C_w[i] > 0.0:
+            status[i] = "bad_sink"
+            reason[i] = f"sink flow must be positive (V_sink={fs.V_k[i]:.4g} m3/s)"
+        elif p_sp[i] >= fluid.p_crit:
+            status[i], reason[i] = "p_m_sp_high", "p_m set point above the critical pressure"
+
+
+def _empty_values(n: int) -> dict:
+    values = {k: np.full(n, np.nan) for k in OUTPUT_KEYS}
+    values["hs_saturated"] = np.zeros(n, dtype=bool)
+    values["ls_saturated"] = np.zeros(n, dtype=bool)
+    return values
+
+
+def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reason, fallback, amb_bar) -> None:
+    """Every output of ``CycleResult.to_dict`` at the solved (T_m, T_c) of the rows, and the limit
+    checks of ``model.cycle._check_limits``."""
+    par, tab = fs.par, fs.tab
+    ls_c, hs_c = par.comp_LS, par.comp_HS
+    T_m, T_c = out.T_m[rows], out.T_c[rows]
+    s = fs.evaluate(rows, T_m, T_c, full=True)
+    bad = s["err"] != 0
+    th2, _, _, _ = tab.vapour_from("h", T_m, s["h2"], fs.u2s[rows])
+    bad |= ~np.isfinite(th2)
+    fallback[rows[bad]] = True                # not expected: the path solved these points
+    m_LS, m_HS = s["m_LS"], s["m_HS"]
+    h1, h2, h4, h_g_m = fs.h1[rows], s["h2"], s["h4"], s["h_g_m"]
+    W_LS = m_LS * (h2 - h1) * ls_c.drive_factor
+    W_HS = m_HS * (h4 - h_g_m) * hs_c.drive_factor
+    Q_source = fs.Q_s[rows]
+    Q_sink = s["Q_SC"] + s["Q_con"] + s["Q_DSH"]
+    C_w = fs.C_w[rows]
+    T_sink_out = s["T_w2"] + s["Q_DSH"] / C_w
+    T_SC_out, T4 = s["T_SC"], s["T4"]
+    T_DSH_out = T4 - s["Q_DSH"] / (m_HS * s["cp_v"])
+    T_ki = fs.T_ki[rows]
+    pinch = np.minimum.reduce([T_SC_out - T_ki, T_c - s["T_w1"], T_c - s["T_w2"],
+                               T_DSH_out - s["T_w2"], T4 - T_sink_out])
+    W_shaft = m_LS * (h2 - h1) + m_HS * (h4 - h_g_m)
+    N_LS, N_HS = s["n_LS"] * ls_c.N_nom, s["n_HS"] * hs_c.N_nom
+    W_total = W_LS + W_HS
+    v = {
+        "p_e_bar": fs.p_e[rows] / BAR, "p_m_bar": s["p_m"] / BAR, "p_c_bar": s["p_c"] / BAR,
+        "p_m_barg": Pa_to_barg(s["p_m"], amb_bar), "T_e_C": K_to_C(fs.T_e[rows]), "T_m_C": K_to_C(T_m),
+        "T_c_C": K_to_C(T_c), "N_LS_rpm": N_LS, "N_HS_rpm": N_HS, "Q_sink_kW": Q_sink / 1e3,
+        "Q_source_kW": Q_source / 1e3, "W_LS_kW": W_LS / 1e3, "W_HS_kW": W_HS / 1e3,
+        "W_total_kW": W_total / 1e3, "COP": Q_sink / W_total, "T_sink_out_C": K_to_C(T_sink_out),
+        "eta_is_LS": s["eta_LS"], "eta_is_HS": s["eta_HS"], "eta_vol_LS": s["ev_LS"],
+        "eta_vol_HS": s["ev_HS"], "m_LS_kg_s": m_LS, "m_HS_kg_s": m_HS, "subcooling_K": T_c - T_SC_out,
+        "pinch_K": pinch, "dp_source_bar": par.CF_dp_f * par.dp_clean(fs.V_s[rows]) / BAR,
+        "T_dis_LS_C": K_to_C(T_m + th2), "T_dis_HS_C": K_to_C(T4),
+        "energy_residual": (Q_source + W_shaft - Q_sink) / Q_sink,
+        "hs_saturated": out.branch[rows] == HS_MAX, "T_source_out_C": K_to_C(fs.T_so[rows]),
+        "ls_saturated": ls_limit[rows] != "",
+    }
+    keep = ~bad
+    for k, a in v.items():
+        values[k][rows[keep]] = a[keep]
+    tol = LS_SPEED_LOOSE * ls_c.N_nom
+    for j in np.flatnonzero(keep):
+        i = rows[j]
+        if N_LS[j] > ls_c.N_max + tol:
+            status[i] = "ls_speed_high"
+            reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm above its maximum {ls_c.N_max:.0f} rpm"
+        elif N_LS[j] < ls_c.N_min - tol:
+            status[i] = "ls_speed_low"
+            reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm below its minimum {ls_c.N_min:.0f} rpm"
+        elif pinch[j] < 0.0:
+            status[i], reason[i] = "negative_pinch", f"negative pinch {pinch[j]:.3f} K in the condenser unit"
+
+
+def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason) -> str:
+    """Row i by ``model.cycle.solve`` without a guess (the reference), into the outputs; returns
+    the branch of its solution ("" where none)."""
+    vals = {c: cols[c][i] for c in INPUT_COLUMNS}
+    try:
+        res = solve(inputs_from_row(vals, amb_bar), params, fluid=fluid, ls_mode=ls_mode)
+        st, why = "ok", ""
+    except InfeasibleOperation as exc:
+        st, why, res = exc.reason, str(exc), exc.result
+    except ModelError as exc:
+        st, why, res = exc.reason, str(exc), None
+    status[i], reason[i] = ("" if st == "ok" else st), why
+    if res is None:
+        return ""
+    for k, v in result_row(res, params.ambient_pressure).items():
+        values[k][i] = v
+    return res.branch

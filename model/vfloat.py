@@ -1,0 +1,217 @@
+"""The LS speed controller's saturation (``ls_mode="float"`` of ``model.cycle.solve``) for many rows.
+
+``model.cycle._solve_ls_float``: a row whose LS speed at the input T_source,out lies outside
+[N_min, N_max] floats: T_source,out moves (up at N_max, down at N_min) until N_LS sits on the violated
+bound; a row that cannot be solved at the input for too much duty (``OVERLOAD``) floats when the
+far end of the range (T_source,in - 0.05 K) solves with N_LS <= N_max, else keeps its failure.
+
+The scalar solver finds the floating point by a secant on T_source,out whose trials are warm-started
+full solves; here the root itself is solved, more directly, for the branch the row has there:
+
+- "sp" (T_m at the set point): N_LS depends on T_source,out alone (the LS side), a 1-D secant
+  safeguarded by its bracket; then the branch test at the floating point confirms "sp";
+- at an HS speed bound (T_m floats): (T_source,out, T_m, T_c) by Newton with a finite-difference
+  Jacobian and Broyden updates on (r, n_HS - bound, n_LS - n_bound); the branch holds where T_m lies
+  on the bound's side of the set point.
+
+A row that settles in neither, or outside the scalar search's range, goes to the scalar path. The
+root is solved to 1e-11 in the LS speed ratio, the scalar one to 1e-7: T_source,out differs by the
+scalar's tolerance (~5e-7 K). SI units.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .cycle import ENERGY_TOL, OVERLOAD, SPEED_TOL
+from .vflowsheet import E_OK, Flowsheet
+from .vsolve import FALLBACK, HS_MAX, HS_MIN, SP, Outcome, Raised, TcSolver, solve_cold
+
+LS_TOL = 1e-11           # LS speed ratio on its bound
+MAX_ITER = 40
+STEP_MAX = 2.0           # K, the largest step of the joint Newton
+
+
+def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls_limit) -> None:
+    """Float T_source,out for the rows of ``todo`` that need it (see the module docstring): updates
+    the flowsheet's source side, ``out`` (branch, T_m, T_c, or the failure) and ``ls_limit``."""
+    ls = fs.par.comp_LS
+    n_lo, n_hi = ls.N_min / ls.N_nom, ls.N_max / ls.N_nom
+    T_in, T_sp = fs.T_si, fs.T_so.copy()
+    solved = todo[out.code[todo] == ""]
+    n_LS = fs.ls_speed(solved, out.T_m[solved])[0] if len(solved) else np.zeros(0)
+    up = solved[n_LS > n_hi]
+    down = solved[n_LS < n_lo]
+    x0_up = T_in[up] - (T_in[up] - T_sp[up]) * n_hi / n_LS[n_LS > n_hi]
+    x0_down = T_in[down] - (T_in[down] - T_sp[down]) * n_lo / n_LS[n_LS < n_lo]
+    # rows that cannot be solved at the input for too much duty: the far end decides
+    over = todo[np.isin(out.code[todo], OVERLOAD)]
+    x0_over = np.zeros(0)
+    if len(over):
+        far = T_in[over] - 0.05
+        fs.set_source(over, far)
+        o2 = Outcome(len(fs.T_so))
+        solve_cold(fs, over, T_m_sp, p_sp, T_c_max, o2)
+        ok = o2.code[over] == ""
+        n_far = np.full(len(over), np.inf)
+        if ok.any():
+            n_far[ok] = fs.ls_speed(over[ok], o2.T_m[over[ok]])[0]
+        go = ok & (n_far <= n_hi)
+        fs.set_source(over[~go], T_sp[over[~go]])
+        for i in over[~ok & (o2.code[over] == FALLBACK)]:
+            out.code[i] = FALLBACK                   # the scalar path settles what the far end gives
+        over = over[go]
+        x0_over = T_sp[over] + 0.5 * (T_in[over] - 0.05 - T_sp[over])
+        out.branch[over], out.T_m[over], out.T_c[over] = o2.branch[over], o2.T_m[over], o2.T_c[over]
+        out.code[over], out.msg[over] = "", ""
+    rows = np.concatenate([up, over, down])
+    if not len(rows):
+        return
+    limit_max = np.concatenate([np.ones(len(up) + len(over), bool), np.zeros(len(down), bool)])
+    x0 = np.concatenate([x0_up, x0_over, x0_down])
+    lo = np.where(limit_max, T_sp[rows], np.maximum(T_sp[rows] - 15.0, fs.tab.T_triple + 5.0))
+    hi = np.where(limit_max, T_in[rows] - 0.05, T_sp[rows])
+    x0 = np.minimum(np.maximum(x0, lo), hi)
+    n_b = np.where(limit_max, n_hi, n_lo)
+    state = dict(T_so=x0, T_m=out.T_m[rows].copy(), T_c=out.T_c[rows].copy(),
+                 branch=out.branch[rows].copy(), done=np.zeros(len(rows), bool))
+    tried = np.zeros((len(rows), 2), dtype=bool)       # [sp, bound] tried
+    for _ in range(2):
+        sp = np.flatnonzero(~state["done"] & (state["branch"] == SP) & ~tried[:, 0])
+        if len(sp):
+            tried[sp, 0] = True
+            _float_sp(fs, rows[sp], T_m_sp, T_sp[rows[sp]], n_b[sp], lo[sp], hi[sp], T_c_max, state, sp)
+        bd = np.flatnonzero(~state["done"] & (state["branch"] != SP) & ~tried[:, 1])
+        if len(bd):
+            tried[bd, 1] = True
+            _float_bound(fs, rows[bd], T_m_sp, n_b[bd], lo[bd], hi[bd], state, bd)
+    done = state["done"]
+    fs.set_source(rows[done], state["T_so"][done])
+    fs.set_source(rows[~done], T_sp[rows[~done]])
+    r = rows[done]
+    out.branch[r], out.T_m[r], out.T_c[r] = state["branch"][done], state["T_m"][done], state["T_c"][done]
+    ls_limit[r] = np.where(limit_max[done], "max", "min")
+    for i in rows[~done]:
+        out.code[i], out.msg[i] = FALLBACK, "LS float not settled"
+
+
+def _float_sp(fs: Flowsheet, rows, T_m_sp, T_sp, n_b, lo, hi, T_c_max, state: dict, at) -> None:
+    """Rows floating with T_m at the set point: N_LS(T_so) = N_b on the LS side alone (bracketed
+    secant), then the branch test at the floating point (the T_c secant from the last T_c)."""
+    T_m = T_m_sp[rows]
+
+    def f(x):
+        fs.set_source(rows, x)
+        return fs.ls_speed(rows, T_m)[0] - n_b
+
+    x0 = state["T_so"][at]
+    far = np.where(n_b > 1.0, hi, lo)               # N_max: toward T_in; N_min: toward colder
+    f_sp, f0, f_far = f(T_sp), f(x0), f(far)
+    first = np.sign(f0) != np.sign(f_sp)
+    a, fa = np.where(first, T_sp, x0), np.where(first, f_sp, f0)
+    b, fb = np.where(first, x0, far), np.where(first, f0, f_far)
+    ok = np.isfinite(fa) & np.isfinite(fb) & (np.sign(fa) != np.sign(fb))
+    x, conv = _bracketed(f, a, fa, b, fb, ok)
+    conv &= ok & (x > np.minimum(lo, hi)) & (x <= np.maximum(lo, hi))
+    fs.set_source(rows, x)
+    # the branch test at the floating point
+    T_c0 = np.where(np.isfinite(state["T_c"][at]), state["T_c"][at], fs.T_ki[rows] + 30.0)
+    tc = TcSolver(fs, rows, T_c0, T_c_max)
+    raised = Raised(len(rows))
+    T_c, n_sp = tc(np.arange(len(rows)), T_m, raised)
+    hs = fs.par.comp_HS
+    up, down = n_sp > hs.N_max / hs.N_nom + SPEED_TOL, n_sp < hs.N_min / hs.N_nom - SPEED_TOL
+    good = conv & np.isfinite(T_c) & (raised.cls == 0)
+    state["T_so"][at[good]], state["T_m"][at[good]], state["T_c"][at[good]] = x[good], T_m[good], T_c[good]
+    state["done"][at[good & ~up & ~down]] = True
+    # the HS cannot hold the set point at the floating point: it runs at its bound, T_m floats
+    state["branch"][at[good & up]] = HS_MAX
+    state["branch"][at[good & down]] = HS_MIN
+
+
+def _bracketed(f, a, fa, b, fb, ok):
+    """Roots of f (all rows at once) in brackets [a, b] with f(a), f(b) of opposite signs: secant
+    through the two newest points, bisection where it leaves the bracket. Returns (x, converged)."""
+    x_p, f_p, x, fx = a, fa, b, fb
+    conv = np.zeros(len(a), bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(MAX_ITER):
+            conv = ok & ((np.abs(fx) < LS_TOL) | (np.abs(b - a) < 1e-11))
+            if np.all(conv | ~ok):
+                break
+            xn = x - fx * (x - x_p) / (fx - f_p)
+            inside = (xn > np.minimum(a, b)) & (xn < np.maximum(a, b))
+            xn = np.where(conv | ~ok, x, np.where(inside, xn, 0.5 * (a + b)))
+            fn = f(xn)
+            ok &= np.isfinite(fn) | conv
+            lo_side = np.sign(fn) == np.sign(fa)
+            a, fa = np.where(lo_side & ~conv, xn, a), np.where(lo_side & ~conv, fn, fa)
+            b, fb = np.where(~lo_side & ~conv, xn, b), np.where(~lo_side & ~conv, fn, fb)
+            x_p, f_p = np.where(conv, x_p, x), np.where(conv, f_p, fx)
+            x, fx = np.where(conv, x, xn), np.where(conv, fx, fn)
+    return x, conv
+
+
+def _float_bound(fs: Flowsheet, rows, T_m_sp, n_b, lo, hi, state: dict, at) -> None:
+    """Rows floating with the HS at a speed bound: Newton-Broyden on (T_so, T_m, T_c)."""
+    hs = fs.par.comp_HS
+    k = len(rows)
+    br = state["branch"][at]
+    bound = np.where(br == HS_MAX, hs.N_max, hs.N_min) / hs.N_nom
+    X = np.stack([state["T_so"][at], state["T_m"][at], state["T_c"][at]], axis=1)
+    ok = np.all(np.isfinite(X), axis=1)
+    X = np.where(ok[:, None], X, 300.0)
+    # four copies of the rows: the point and one finite-difference step per unknown
+    g = Flowsheet(fs.par, fs.tab, fs.ls, fs.hs, *(np.tile(a[rows], 4) for a in (fs.T_si, fs.T_so, fs.T_ki, fs.V_s, fs.V_k)))
+    h = 1e-3
+    X4 = np.tile(X, (4, 1))
+    for j in range(3):
+        X4[(j + 1) * k:(j + 2) * k, j] += h
+    F4, e4 = _residual(g, np.arange(4 * k), X4, np.tile(bound, 4), np.tile(n_b, 4))
+    ok &= np.all(e4.reshape(4, k) == E_OK, axis=0)
+    F = F4[:k]
+    J = np.stack([(F4[(j + 1) * k:(j + 2) * k] - F) / h for j in range(3)], axis=2)   # (k, 3, 3)
+    base = np.arange(k)
+    scale = np.array([ENERGY_TOL, SPEED_TOL, LS_TOL])
+    conv = np.zeros(k, bool)
+    for _ in range(MAX_ITER):
+        conv |= ok & np.all(np.abs(F) < scale, axis=1)
+        act = np.flatnonzero(ok & ~conv)
+        if not len(act):
+            break
+        try:
+            dX = -np.linalg.solve(J[act], F[act][:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            ok[act] = False
+            break
+        big = np.max(np.abs(dX), axis=1)
+        dX = np.where((big > STEP_MAX)[:, None], dX * (STEP_MAX / np.maximum(big, 1e-300))[:, None], dX)
+        Xn = X[act] + dX
+        inside = (Xn[:, 0] >= lo[act]) & (Xn[:, 0] <= hi[act]) & (Xn[:, 1] < Xn[:, 2] - 0.05)
+        ok[act[~inside]] = False
+        act, dX, Xn = act[inside], dX[inside], Xn[inside]
+        if not len(act):
+            break
+        Fn, e = _residual(g, base[act], Xn, bound[act], n_b[act])
+        good = e == E_OK
+        ok[act[~good]] = False
+        dF = Fn - F[act]
+        u = dF - np.einsum("kij,kj->ki", J[act], dX)
+        J[act] += u[:, :, None] * dX[:, None, :] / np.sum(dX * dX, axis=1)[:, None, None]
+        X[act], F[act] = Xn, Fn
+    side = np.where(br == HS_MAX, X[:, 1] > T_m_sp[rows] + 1e-6, X[:, 1] < T_m_sp[rows])
+    fin = conv & side
+    j = at[fin]
+    state["T_so"][j], state["T_m"][j], state["T_c"][j] = X[fin, 0], X[fin, 1], X[fin, 2]
+    state["done"][j] = True
+    back = at[conv & ~side]                         # the HS holds the set point there: "sp"
+    state["branch"][back] = SP
+    state["T_so"][back] = X[conv & ~side, 0]
+
+
+def _residual(g: Flowsheet, idx, X, bound, n_b):
+    """(r, n_HS - bound, n_LS - n_b) at X = (T_so, T_m, T_c) for the rows idx of g, and err."""
+    g.set_source(idx, X[:, 0])
+    ev = g.evaluate(idx, X[:, 1], X[:, 2], full=True)
+    err = np.where(g.src_ok[idx], ev["err"], 9)
+    F = np.stack([ev["r"], ev["n_HS"] - bound, ev["n_LS"] - n_b], axis=1)
+    return F, err

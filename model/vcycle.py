@@ -297,7 +297,9 @@ def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reaso
     tol = LS_SPEED_LOOSE * ls_c.N_nom
     for j in np.flatnonzero(keep):
         i = rows[j]
-        if N_LS[j] > ls_c.N_max + tol:
+        if out.flag[i]:
+            status[i], reason[i] = out.flag[i], out.flag_msg[i]
+        elif N_LS[j] > ls_c.N_max + tol:
             status[i] = "ls_speed_high"
             reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm above its maximum {ls_c.N_max:.0f} rpm"
         elif N_LS[j] < ls_c.N_min - tol:

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cycle import ENERGY_TOL, OVERLOAD, SPEED_TOL
+from .cycle import ENERGY_TOL, LS_SPEED_LOOSE, OVERLOAD, SPEED_TOL
+from .units import K_to_C
 from .vflowsheet import E_OK, Flowsheet
 from .vsolve import FALLBACK, HS_MAX, HS_MIN, SP, Outcome, Raised, TcSolver, solve_cold
 
@@ -46,6 +47,7 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
     # rows that cannot be solved at the input for too much duty: the far end decides
     over = todo[np.isin(out.code[todo], OVERLOAD)]
     x0_over = np.zeros(0)
+    over_code = over_msg = np.zeros(0, dtype=object)
     if len(over):
         far = T_in[over] - 0.05
         fs.set_source(over, far)
@@ -62,6 +64,7 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
         over = over[go]
         x0_over = T_sp[over] + 0.5 * (T_in[over] - 0.05 - T_sp[over])
         out.branch[over], out.T_m[over], out.T_c[over] = o2.branch[over], o2.T_m[over], o2.T_c[over]
+        over_code, over_msg = out.code[over].copy(), out.msg[over].copy()
         out.code[over], out.msg[over] = "", ""
     rows = np.concatenate([up, over, down])
     if not len(rows):
@@ -72,7 +75,7 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
     hi = np.where(limit_max, T_in[rows] - 0.05, T_sp[rows])
     x0 = np.minimum(np.maximum(x0, lo), hi)
     n_b = np.where(limit_max, n_hi, n_lo)
-    state = dict(T_so=x0, T_m=out.T_m[rows].copy(), T_c=out.T_c[rows].copy(),
+    state = dict(T_so=x0.copy(), T_m=out.T_m[rows].copy(), T_c=out.T_c[rows].copy(),
                  branch=out.branch[rows].copy(), done=np.zeros(len(rows), bool))
     tried = np.zeros((len(rows), 2), dtype=bool)       # [sp, bound] tried
     for _ in range(2):
@@ -84,13 +87,25 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
         if len(bd):
             tried[bd, 1] = True
             _float_bound(fs, rows[bd], T_m_sp, n_b[bd], lo[bd], hi[bd], state, bd)
+    fails = _first_trial(fs, rows, T_m_sp, p_sp, T_c_max, x0, n_b, limit_max, state)
     done = state["done"]
     fs.set_source(rows[done], state["T_so"][done])
     fs.set_source(rows[~done], T_sp[rows[~done]])
     r = rows[done]
     out.branch[r], out.T_m[r], out.T_c[r] = state["branch"][done], state["T_m"][done], state["T_c"][done]
     ls_limit[r] = np.where(limit_max[done], "max", "min")
-    for i in rows[~done]:
+    # the scalar search fails: the input's solution flagged (or, without one, the input's failure)
+    n_in = len(up)
+    for j in np.flatnonzero(fails):
+        i = rows[j]
+        if n_in <= j < n_in + len(over):
+            out.code[i], out.msg[i] = over_code[j - n_in], over_msg[j - n_in]
+        else:
+            N_b = ls.N_max if limit_max[j] else ls.N_min
+            out.flag[i] = "ls_speed_high" if limit_max[j] else "ls_speed_low"
+            out.flag_msg[i] = (f"LS compressor at {N_b:.0f} rpm: no source outlet temperature in "
+                               f"{K_to_C(lo[j]):.2f}..{K_to_C(hi[j]):.2f} degC carries its flow")
+    for i in rows[~done & ~fails]:
         out.code[i], out.msg[i] = FALLBACK, "LS float not settled"
 
 
@@ -149,6 +164,34 @@ def _bracketed(f, a, fa, b, fb, ok):
             x_p, f_p = np.where(conv, x_p, x), np.where(conv, f_p, fx)
             x, fx = np.where(conv, x, xn), np.where(conv, fx, fn)
     return x, conv
+
+
+def _first_trial(fs: Flowsheet, rows, T_m_sp, p_sp, T_c_max, x0, n_b, limit_max, state: dict) -> np.ndarray:
+    """The scalar search counts a trial that cannot be solved as lying on the input's side. Its first
+    trial (the duty-proportional estimate) lies beyond the root for a convex N_LS(T_so), where the
+    flowsheet may fail for too little duty (p_m_above_p_c, hs_speed_low). Then every later trial lies
+    beyond that one, none comes within LS_SPEED_LOOSE of the bound, and the search fails the row.
+    Solves the first trial (as the scalar path does) where it lies beyond the root found here; returns
+    the rows whose search so fails. Rows whose failed first trial lies too close to the root to be
+    sure are left undone (the scalar path)."""
+    T_so = state["T_so"]
+    fails = np.zeros(len(rows), bool)
+    beyond = state["done"] & np.where(limit_max, x0 > T_so + 1e-9, x0 < T_so - 1e-9)
+    chk = np.flatnonzero(beyond)
+    if not len(chk):
+        return fails
+    r = rows[chk]
+    fs.set_source(r, x0[chk])
+    o = Outcome(len(fs.T_so))
+    solve_cold(fs, r, T_m_sp, p_sp, T_c_max, o)
+    bad = o.code[r] != ""
+    state["done"][chk[bad]] = False
+    # how far from the bound the first trial's LS speed lies (T_m of the root: exact at "sp")
+    f0 = fs.ls_speed(r, state["T_m"][chk])[0] - n_b[chk]
+    sure = bad & (o.code[r] != FALLBACK) & (np.abs(f0) > 2.0 * LS_SPEED_LOOSE)
+    fails[chk[sure]] = True
+    fs.set_source(r, T_so[chk])
+    return fails
 
 
 def _float_bound(fs: Flowsheet, rows, T_m_sp, n_b, lo, hi, state: dict, at) -> None:

@@ -68,7 +68,8 @@ def _reason_of(e: int) -> str:
 
 class Outcome:
     """Per-row result of the cold path: ``code`` ('' where solved, else the scalar's reason code or
-    "fallback"), ``msg`` (the reason text), ``branch`` (SP/HS_MAX/HS_MIN), T_m, T_c [K]."""
+    "fallback"), ``msg`` (the reason text), ``branch`` (SP/HS_MAX/HS_MIN), T_m, T_c [K]; ``flag``
+    and ``flag_msg`` where a solved row's status is the solver's (not the limit checks')."""
 
     def __init__(self, n: int) -> None:
         self.code = np.full(n, "", dtype=object)
@@ -76,6 +77,8 @@ class Outcome:
         self.branch = np.zeros(n, dtype=np.int8)
         self.T_m = np.full(n, np.nan)
         self.T_c = np.full(n, np.nan)
+        self.flag = np.full(n, "", dtype=object)       # a solved row's status set by the solver
+        self.flag_msg = np.full(n, "", dtype=object)
 
     def fail(self, rows, codes, msgs) -> None:
         for r, c, m in zip(rows, codes, msgs):

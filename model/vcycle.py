@@ -39,6 +39,8 @@ from .vfloat import float_ls
 from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
 
 SOLVED_FLAGS = ("ls_speed_high", "ls_speed_low", "negative_pinch")
+# beyond model.batch.OUTPUT_KEYS: the subcooler's states (its outlet on the equation of state)
+EXTRA_KEYS = ("Q_SC_kW", "T_SC_C", "h_SC_J_kg", "h_con_out_J_kg", "T_w_SC_out_C")
 _PROTOCOL = (("eta_is_at", "eta_is_v"), ("eta_vol_at", "eta_vol_v"), ("speed_for_flow", "speed_for_flow_v"))
 
 
@@ -159,11 +161,14 @@ def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
     return cols
 
 
-def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag") -> VResult:
+def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
+               force_scalar=None) -> VResult:
     """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
     m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
     as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
-    LS saturates at its speed bound and T_source,out floats). Returns a ``VResult``."""
+    LS saturates at its speed bound and T_source,out floats). ``force_scalar``: a boolean mask of rows
+    to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys
+    of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``."""
     if ls_mode not in LS_MODES:
         raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
     t0 = time.process_time()
@@ -187,6 +192,8 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
     p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
     fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k)
     _precheck(fs, fluid, p_sp, status, reason, fallback)
+    if force_scalar is not None:
+        fallback |= (status == "") & np.asarray(force_scalar, dtype=bool)
     T_m_sp = tab.T_sat(p_sp)
     fallback |= (status == "") & ~np.isfinite(T_m_sp)
     T_c_max = fluid.sat_p(min(params.p_c_max, fluid.p_crit * 0.98)).T
@@ -244,7 +251,7 @@ def _precheck(fs: Flowsheet, fluid, p_sp, status, reason, fallback) -> None:
 
 
 def _empty_values(n: int) -> dict:
-    values = {k: np.full(n, np.nan) for k in OUTPUT_KEYS}
+    values = {k: np.full(n, np.nan) for k in OUTPUT_KEYS + EXTRA_KEYS}
     values["hs_saturated"] = np.zeros(n, dtype=bool)
     values["ls_saturated"] = np.zeros(n, dtype=bool)
     return values
@@ -290,6 +297,8 @@ def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reaso
         "energy_residual": (Q_source + W_shaft - Q_sink) / Q_sink,
         "hs_saturated": out.branch[rows] == HS_MAX, "T_source_out_C": K_to_C(fs.T_so[rows]),
         "ls_saturated": ls_limit[rows] != "",
+        "Q_SC_kW": s["Q_SC"] / 1e3, "T_SC_C": K_to_C(T_SC_out), "h_SC_J_kg": s["h_SC"],
+        "h_con_out_J_kg": s["h_f_c"], "T_w_SC_out_C": K_to_C(s["T_w1"]),
     }
     keep = ~bad
     for k, a in v.items():
@@ -324,5 +333,10 @@ def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason
     if res is None:
         return ""
     for k, v in result_row(res, params.ambient_pressure).items():
+        values[k][i] = v
+    sc = res.states["SC_out"]
+    extra = {"Q_SC_kW": res.Q_SC / 1e3, "T_SC_C": K_to_C(sc.T), "h_SC_J_kg": sc.h,
+             "h_con_out_J_kg": res.states["con_out"].h, "T_w_SC_out_C": K_to_C(res.T_w_SC_out)}
+    for k, v in extra.items():
         values[k][i] = v
     return res.branch

@@ -1,26 +1,32 @@
-"""Spline tables of the refrigerant for the vectorised flowsheet (``model.vcycle``), in the
+"""Spline tables of the refrigerant for the vectorised flowsheet (``model.vflowsheet``), in the
 coordinates the flowsheet works in: saturation temperatures.
 
 The flowsheet's unknowns are saturation temperatures (T_e, T_m, T_c), so every state it needs is a
 function of one saturation temperature T_sat and one more coordinate:
 
-- saturation by temperature: p, h_f, h_g, s_g, rho_g at T_sat (cubic splines on a uniform T grid,
+- saturation by temperature: p, h_f, h_g, s_g, rho_g at T_sat (cubic splines on a 0.05-K grid,
   ln p and ln rho_g splined for relative accuracy), and its inverse T_sat(p) by Newton on the same
   spline (so that sat(T_sat(p)).p == p to round-off);
 - superheated vapour at (p_sat(T_sat), T_sat + theta): h, s, ln rho as tensor-product cubic splines
-  in (T_sat, u), theta = THETA_GRID * expm1(a u)/expm1(a) (nodes 0.05 K apart at saturation, 4 K at
-  the top; a map with a finite slope at u = 0: theta ~ u^2 magnified the vapour's curvature near
-  saturation into 5e-3 J/kg errors), and the inverse problems at fixed T_sat by Newton in u: the
-  isentropic state (s given) and the state from h;
+  in (T_sat, u), theta = THETA_GRID * expm1(a u)/expm1(a): nodes 0.12 K apart at saturation, a few K
+  at 100-200 K, up to 4500 K of superheat (the scalar solver's trial points reach 2000 K and more
+  where eta_HS is small and the pressure ratio large, and those rows must follow its path). A map
+  with a finite slope at u = 0: theta ~ u^2 turned the vapour's curvature near saturation into
+  5e-3 J/kg errors;
+- derived from that spline, for direct lookups without Newton in the flowsheet's hot path: h of the
+  isentropic state on (T_sat, s - s_g) and the superheat on (T_sat, h - h_g);
 - subcooled liquid at (p_sat(T_c), T_c - d): h as a tensor-product cubic spline in (T_c, d).
 
 Evaluation gathers the cell's polynomial coefficients (scaled to the unit cell) and runs Horner on
-whole arrays: a few microseconds per call for hundreds of rows, no scipy call in the hot path.
+whole arrays: no scipy call in the hot path. The spline nodes reach PAD nodes beyond the valid
+ranges (metastable vapour and liquid included) so that the end conditions stay outside them.
 
-Accuracy against HEOS (``tests/test_vcycle.py`` checks it on random points): h within 1e-4 J/kg,
-s within 1e-7 J/kg/K, rho and p within 1e-9 relative, T_sat(p) within 1e-9 K; the vapour inverses
-within 1e-7 K. Outside the tables' ranges the functions return NaN (``ok`` False): the caller solves
-those rows with the scalar HEOS path. The tables are built once per process from HEOS (~1 s) and are
+Accuracy against HEOS (``tests/test_vcycle.py`` checks it on random states): saturation p and rho
+to 1e-11 relative, h to 1e-6 J/kg, T_sat(p) to 1e-9 K; vapour h to 1e-3 J/kg up to 220 K of
+superheat (3e-3 J/kg near saturation above 370 K), 2e-2 J/kg beyond (1e-9 relative), s to 1e-5
+J/kg/K, rho to 1e-8 relative; the isentropic h to 3e-3 J/kg and T from h to 1e-6 K; liquid h to
+2e-3 J/kg. Outside the tables' ranges the functions return NaN: the caller solves those rows with
+the scalar HEOS path. The tables are built once per process from HEOS (~1.5 s CPU) and are
 deterministic. SI units: K, Pa, J/kg, J/kg/K, kg/m^3.
 """
 from __future__ import annotations
@@ -35,10 +41,14 @@ from .fluid import Fluid
 
 SAT_T_MIN, SAT_T_MAX, SAT_DT = 200.0, 395.0, 0.05      # K
 VAP_T_MIN, VAP_T_MAX, VAP_DT = 200.0, 385.0, 1.0       # K (valid range; nodes 4 K beyond)
-THETA_MAX = 2000.0                                      # K of superheat (valid range)
-THETA_GRID, VAP_NU, VAP_ALPHA = 2400.0, 260, 6.0        # theta nodes: THETA_GRID*expm1(a u)/expm1(a)
+THETA_MAX = 4500.0                                      # K of superheat (valid range)
+THETA_GRID, VAP_NU, VAP_ALPHA = 5000.0, 300, 7.0        # theta nodes: THETA_GRID*expm1(a u)/expm1(a)
 LIQ_T_MIN, LIQ_T_MAX, LIQ_DT = 270.0, 385.0, 1.0        # K (condensing temperature)
 LIQ_D_MAX, LIQ_DD = 70.0, 0.5                           # K of subcooling
+DS_GRID, DS_ALPHA, DS_MAX = 9000.0, 6.5, 8500.0         # derived table on s - s_g [J/kg/K]: map, valid
+DH_GRID, DH_ALPHA, DH_MAX = 1.4e7, 8.5, 1.3e7           # derived table on h - h_g [J/kg]: map, valid
+DER_NU = 260                                            # nodes of the derived tables' second axis
+T_RANGE = (LIQ_T_MIN, VAP_T_MAX)                        # condensing temperatures every table covers
 PAD = 4                                                 # nodes beyond the valid ranges
 NEWTON_ITER = 40
 
@@ -107,6 +117,19 @@ class CycleTables:
             [_bicubic_unit(Tv, u, F).reshape(-1, 4, 4) for F in (H, S, np.log(R))], axis=-1))
         self._vap_x0, self._vap_nx, self._vap_nu = Tv[0], len(Tv), len(u)
         self._vap_du, self._vap_u0 = u[1] - u[0], u[0]
+        # ---- derived from the vapour spline, for direct lookups in the flowsheet: h of the
+        # isentropic state on (T_sat, ds = s - s_g) and the superheat on (T_sat, dh = h - h_g)
+        gs = self._sat_eval(Tv, slice(2, 4))                      # h_g, s_g at the nodes
+        w = np.arange(-PAD, DER_NU) / (DER_NU - 1.0)
+        for name, grid, alpha, col, key in (("_isen", DS_GRID, DS_ALPHA, 1, "s"), ("_tofh", DH_GRID, DH_ALPHA, 0, "h")):
+            dv = grid * np.expm1(alpha * w) / math.expm1(alpha)
+            tgt = (gs[:, col][:, None] + dv[None, :]).ravel()
+            th, h, _, _ = self.vapour_from(key, np.repeat(Tv, len(w)), tgt, None, _build=True)
+            F = (h if key == "s" else th).reshape(len(Tv), len(w))
+            if not np.all(np.isfinite(F)):
+                raise ArithmeticError(f"{name}: the vapour table does not cover its nodes")
+            setattr(self, name, _bicubic_unit(Tv, w, F))
+        self._der_dw, self._der_w0, self._der_nw = w[1] - w[0], w[0], len(w)
         # ---- subcooled liquid on (T_c, d): h at (p_sat(T_c), T_c - d)
         Tl = np.arange(LIQ_T_MIN - 4.0, LIQ_T_MAX + 4.0 + 0.5 * LIQ_DT, LIQ_DT)
         d = np.arange(-PAD, LIQ_D_MAX / LIQ_DD + 4.5) * LIQ_DD   # PAD nodes of metastable liquid
@@ -221,7 +244,55 @@ class CycleTables:
         v = np.where(ok[:, None], self._cubic(a, t), np.nan)
         return v[:, 0], v[:, 1], np.exp(v[:, 2])
 
-    def vapour_from(self, key: str, T_sat, target, u0=None):
+    def vapour_from_warm(self, key: str, T_sat, target, u0):
+        """``vapour_from`` for arrays without NaN and a warm start u0 in (0, U_MAX) for every row:
+        three Newton steps on the cubic of u0's cell, checked, and once more from the cell they
+        point to; rows still unsettled are solved by ``vapour_from``. Inputs outside the table's
+        T_sat range go the general way too."""
+        q = 0 if key == "h" else 1
+        x = (T_sat - self._vap_x0) * (1.0 / VAP_DT)
+        i = np.minimum(np.maximum(x.astype(np.intp), 0), self._vap_nx - 2)
+        base, tx = i * (self._vap_nu - 1), (x - i)[:, None, None]
+        u = np.minimum(np.maximum(u0, 0.0), U_MAX)
+        out_T = (x < 4.0) | (x > self._vap_nx - 5.0)
+        theta = h = rho = None
+        todo = None
+        for _ in range(2):
+            sel = slice(None) if todo is None else todo
+            uu, tq, bq, tg = u[sel], tx[sel], base[sel], target[sel]
+            y = (uu - self._vap_u0) * (1.0 / self._vap_du)
+            j = np.minimum(np.maximum(y.astype(np.intp), 0), self._vap_nu - 2)
+            g = self._vap[bq + j]
+            a = ((g[:, 0] * tq + g[:, 1]) * tq + g[:, 2]) * tq + g[:, 3]
+            a0, a1, a2, a3 = a[:, 0, q], a[:, 1, q], a[:, 2, q], a[:, 3, q] - tg
+            t = y - j
+            for _ in range(3):
+                step = (((a0 * t + a1) * t + a2) * t + a3) / ((3.0 * a0 * t + 2.0 * a1) * t + a2)
+                t = t - step
+            un = (j + t) * self._vap_du + self._vap_u0
+            v = self._cubic(a, t)
+            ok = (np.abs(step) <= 1e-12) & (t >= 0.0) & (t <= 1.0) & (un > 1e-9) & (un < U_MAX)
+            if todo is None:
+                theta, h, rho = theta_of_u(un), (v[:, 0] if q == 1 else target.copy()), np.exp(v[:, 2])
+                u = np.where(np.isfinite(un), np.minimum(np.maximum(un, 0.0), U_MAX), u)
+                ok &= ~out_T
+                todo = np.flatnonzero(~ok)
+            else:
+                theta[todo] = theta_of_u(un)
+                rho[todo] = np.exp(v[:, 2])
+                if q == 1:
+                    h[todo] = v[:, 0]
+                u[todo] = un
+                todo = todo[~ok]
+            if not len(todo):
+                return theta, h, rho, u
+        th_b, h_b, rho_b, u_b = self.vapour_from(key, T_sat[todo], target[todo], u0[todo])
+        theta[todo], rho[todo], u[todo] = th_b, rho_b, u_b
+        if q == 1:
+            h[todo] = h_b
+        return theta, h, rho, u
+
+    def vapour_from(self, key: str, T_sat, target, u0=None, _build: bool = False):
         """The vapour state at p_sat(T_sat) [K] with h [J/kg] (``key`` "h") or s [J/kg/K] (``key``
         "s") equal to target: (theta [K], h, rho, u), u the table coordinate (``u_of_theta``), which
         ``u0`` may give as a warm start. NaN where the state is not superheated vapour within the
@@ -235,7 +306,8 @@ class CycleTables:
         T_sat = np.asarray(T_sat, dtype=float)
         target = np.asarray(target, dtype=float)
         n = len(T_sat)
-        ok = (T_sat >= VAP_T_MIN) & (T_sat <= VAP_T_MAX) & np.isfinite(target)
+        pad = (4.0 * VAP_DT) if _build else 0.0      # the table's builder reaches into its pad nodes
+        ok = (T_sat >= VAP_T_MIN - pad) & (T_sat <= VAP_T_MAX + pad) & np.isfinite(target)
         base, tx = self._vap_row(np.where(ok, T_sat, VAP_T_MIN))
         if u0 is None:          # linear in theta between saturation and THETA_MAX
             _, t0, a = self._vap_cubics(base, tx, np.zeros(n))
@@ -247,9 +319,10 @@ class CycleTables:
             u = u_of_theta(np.where(np.isfinite(frac), frac, 0.5) * THETA_MAX)
         else:
             u = np.where(np.isfinite(u0), u0, 0.5 * U_MAX)
-        u = np.minimum(np.maximum(u, 0.0), U_MAX)
+        u_lo, u_hi = (self._vap_u0, 1.0) if _build else (0.0, U_MAX)
+        u = np.minimum(np.maximum(u, u_lo), u_hi)
         du, u_0 = self._vap_du, self._vap_u0
-        lo, hi = np.zeros(n), np.full(n, U_MAX)
+        lo, hi = np.full(n, u_lo), np.full(n, u_hi)
         done = ~ok
         found = np.zeros(n, dtype=bool)
         res, t_fin = np.zeros((n, 4, 3)), np.zeros(n)
@@ -285,12 +358,72 @@ class CycleTables:
                 un = np.where((un > lo) & (un < hi), un, 0.5 * (lo + hi))
                 done |= ~(lo < hi)                       # the bracket closed: no root
                 u = np.where(done, u, un)
-        ok &= found & (u > 1e-9) & (u < U_MAX)
+        ok &= found & (u > u_lo + 1e-9) & (u < u_hi)
         v = self._cubic(res, t_fin)
         nan = np.nan
         h = v[:, 0] if q == 1 else target
         return (np.where(ok, theta_of_u(u), nan), np.where(ok, h, nan), np.where(ok, np.exp(v[:, 2]), nan),
                 np.where(ok, u, nan))
+
+    # ---- lean evaluations for the flowsheet's inner loops (no range checks: the caller checks
+    # ``T_RANGE``, ``ds``/``dh`` against DS_MAX/DH_MAX and ``d`` against LIQ_D_MAX once) ----------------
+    def sat_raw(self, T):
+        """(p, h_f, h_g, s_g, rho_g) at T [K] within the table (no checks)."""
+        t = (T - self._sat_x0) * (1.0 / SAT_DT)
+        i = t.astype(np.intp)
+        c = self._sat_c[i]
+        t = (t - i)[:, None]
+        v = ((c[:, 0] * t + c[:, 1]) * t + c[:, 2]) * t + c[:, 3]
+        return np.exp(v[:, 0]), v[:, 1], v[:, 2], v[:, 3], np.exp(v[:, 4])
+
+    def isen_raw(self, T_sat, ds):
+        """h [J/kg] of the vapour at p_sat(T_sat) with s = s_g(T_sat) + ds (no checks)."""
+        return self._derived(self._isen, T_sat, ds, DS_GRID, DS_ALPHA)
+
+    def tofh_raw(self, T_sat, dh):
+        """Superheat [K] of the vapour at p_sat(T_sat) with h = h_g(T_sat) + dh (no checks)."""
+        return self._derived(self._tofh, T_sat, dh, DH_GRID, DH_ALPHA)
+
+    def liq_row(self, T_c):
+        """The liquid table's row data at T_c, for ``liq_raw`` in a loop over the subcooling."""
+        x = (T_c - self._liq_x0) * (1.0 / LIQ_DT)
+        i = x.astype(np.intp)
+        return i * (self._liq_nd - 1), (x - i)[:, None]
+
+    def liq_raw(self, row, d):
+        """(h, dh/dT at constant pressure) of the liquid at subcooling d [K] (``liq_row``'s T_c)."""
+        base, tx = row
+        y = (d - self._liq_d0) * (1.0 / LIQ_DD)
+        j = y.astype(np.intp)
+        g = self._liq[base + j]
+        a = ((g[:, 0:4] * tx + g[:, 4:8]) * tx + g[:, 8:12]) * tx + g[:, 12:16]
+        t = y - j
+        h = ((a[:, 0] * t + a[:, 1]) * t + a[:, 2]) * t + a[:, 3]
+        return h, ((3.0 * a[:, 0] * t + 2.0 * a[:, 1]) * t + a[:, 2]) * (-1.0 / LIQ_DD)
+
+    # ---- direct lookups derived from the vapour table ---------------------------------------------
+    def _derived(self, C, T_sat, dv, grid, alpha):
+        x = (T_sat - self._vap_x0) * (1.0 / VAP_DT)
+        i = np.minimum(np.maximum(x.astype(np.intp), 0), self._vap_nx - 2)
+        y = (np.log1p(dv * (math.expm1(alpha) / grid)) * (1.0 / alpha) - self._der_w0) * (1.0 / self._der_dw)
+        j = np.minimum(np.maximum(y.astype(np.intp), 0), self._der_nw - 2)
+        return self._bicubic(C, i * (self._der_nw - 1) + j, x - i, y - j)
+
+    def h_isentropic(self, T_sat, s):
+        """h [J/kg] of vapour at p_sat(T_sat) [K] with entropy s [J/kg/K] (the isentropic discharge
+        state); NaN where s lies below saturation or outside the table."""
+        T_sat = np.asarray(T_sat, dtype=float)
+        ds = np.asarray(s, dtype=float) - self._sat_eval(T_sat, 3)
+        ok = (T_sat >= VAP_T_MIN) & (T_sat <= VAP_T_MAX) & (ds >= 0.0) & (ds <= DS_MAX)
+        return np.where(ok, self._derived(self._isen, T_sat, np.where(ok, ds, 0.0), DS_GRID, DS_ALPHA), np.nan)
+
+    def theta_from_h(self, T_sat, h, h_g=None):
+        """Superheat theta [K] of vapour at p_sat(T_sat) [K] with enthalpy h [J/kg] (``h_g``: the
+        saturated vapour's, when known); NaN where h lies below saturation or outside the table."""
+        T_sat = np.asarray(T_sat, dtype=float)
+        dh = np.asarray(h, dtype=float) - (self._sat_eval(T_sat, 2) if h_g is None else h_g)
+        ok = (T_sat >= VAP_T_MIN) & (T_sat <= VAP_T_MAX) & (dh >= 0.0) & (dh <= DH_MAX)
+        return np.where(ok, self._derived(self._tofh, T_sat, np.where(ok, dh, 0.0), DH_GRID, DH_ALPHA), np.nan)
 
     # ---- subcooled liquid ---------------------------------------------------------------------
     def liq_ok(self, T_c, d) -> np.ndarray:

@@ -125,42 +125,46 @@ class Compressor:
     def speed_for_flow_v(self, m, rho_suc, pi, n0=None) -> tuple[np.ndarray, np.ndarray]:
         """``speed_for_flow`` for arrays of m [kg/s], rho_suc [kg/m^3], pi [-] (n0: warm starts of
         the speed ratio, default 1): (n, eta_vol), NaN in rows where the scalar method raises
-        ValueError (a curve whose flow does not rise with speed, a flow too small for any speed)."""
+        ValueError (a curve whose flow does not rise with speed, a flow too small for any speed).
+        The same Newton on the cubic; once a step is below 1e-7 the next is below 1e-13 (quadratic
+        convergence), so that step is the last (the scalar method takes one more, below 1e-13)."""
         c = self.eta_vol
-        m, rho_suc, pi = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (m, rho_suc, pi)))
-        a0 = c[0] + c[1] * pi + c[3] * pi * pi
-        a1 = c[2] + c[4] * pi
-        a2 = c[5]
-        target = m / (rho_suc * self.swept_volume)
-        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
-        d_lo = a0 + n_lo * (2.0 * a1 + 3.0 * n_lo * a2)
-        d_hi = a0 + n_hi * (2.0 * a1 + 3.0 * n_hi * a2)
-        f_lo = (a0 + n_lo * (a1 + n_lo * a2)) * n_lo
-        f_hi = (a0 + n_hi * (a1 + n_hi * a2)) * n_hi
-        bad = ~((d_lo > 0.0) & (d_hi > 0.0))
-        above, below = target > f_hi, target < f_lo
-        with np.errstate(divide="ignore", invalid="ignore"):
-            n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
-            bad |= below & ~above & ~(n_out > 0.0)
-            ev_out = target / n_out
-        n = np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float)
-        n = np.minimum(np.maximum(np.where(np.isfinite(n), n, 1.0), n_lo), n_hi)
-        live = ~(above | below | bad)            # rows still iterating (frozen once converged)
-        for _ in range(50):
-            if not live.any():
-                break
-            f = (a0 + n * (a1 + n * a2)) * n
-            df = a0 + n * (2.0 * a1 + 3.0 * n * a2)
-            bad |= live & ~(df > 0.0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = (f - target) / df
-            n = np.where(live, np.minimum(np.maximum(n - step, n_lo), n_hi), n)
-            live &= (np.abs(step) >= 1e-13) & (df > 0.0)
-        ev = a0 + n * (a1 + n * a2)
-        out = above | below
-        n = np.where(out, n_out, n)
-        ev = np.where(out, ev_out, ev)
-        return np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
+        with np.errstate(all="ignore"):
+            m, rho_suc, pi = (np.asarray(x, dtype=float) for x in (m, rho_suc, pi))
+            a0 = c[0] + c[1] * pi + c[3] * pi * pi            # eta_vol = a0 + a1 n + a2 n^2
+            a1 = c[2] + c[4] * pi
+            a2 = c[5]
+            target = m / (rho_suc * self.swept_volume)
+            n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
+            d_lo = a0 + n_lo * (2.0 * a1 + 3.0 * n_lo * a2)
+            d_hi = a0 + n_hi * (2.0 * a1 + 3.0 * n_hi * a2)
+            f_lo = (a0 + n_lo * (a1 + n_lo * a2)) * n_lo
+            f_hi = (a0 + n_hi * (a1 + n_hi * a2)) * n_hi
+            bad = ~((d_lo > 0.0) & (d_hi > 0.0))
+            above, below = target > f_hi, target < f_lo
+            out = above | below
+            n = np.ones(target.shape) if n0 is None else np.asarray(n0, dtype=float)
+            n = np.minimum(np.maximum(np.where(n == n, n, 1.0), n_lo), n_hi)
+            inside = ~(out | bad)
+            for _ in range(50):
+                f = (a0 + n * (a1 + n * a2)) * n
+                df = a0 + n * (2.0 * a1 + 3.0 * n * a2)
+                rising = df > 0.0
+                bad |= inside & ~rising
+                inside &= rising
+                step = np.where(inside, (f - target) / df, 0.0)
+                n = np.minimum(np.maximum(n - step, n_lo), n_hi)
+                if not np.abs(step).max(initial=0.0) >= 1e-7:
+                    break
+            ev = a0 + n * (a1 + n * a2)
+            if out.any():
+                n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
+                bad |= below & ~above & ~(n_out > 0.0)
+                n = np.where(out, n_out, n)
+                ev = np.where(out, target / n_out, ev)
+            if bad.any():
+                n, ev = np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
+        return n, ev
 
     def replace(self, **kw) -> "Compressor":
         return dataclasses.replace(self, **kw)

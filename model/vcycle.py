@@ -171,6 +171,11 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
     of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``."""
     if ls_mode not in LS_MODES:
         raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
+    with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays
+        return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar)
+
+
+def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
     t0 = time.process_time()
     amb_bar = params.ambient_pressure / BAR
     cols = _inputs(rows, p_m_sp, amb_bar)
@@ -265,7 +270,7 @@ def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reaso
     T_m, T_c = out.T_m[rows], out.T_c[rows]
     s = fs.evaluate(rows, T_m, T_c, full=True)
     bad = s["err"] != 0
-    th2, _, _, _ = tab.vapour_from("h", T_m, s["h2"], fs.u2s[rows])
+    th2 = tab.theta_from_h(T_m, s["h2"], s["h_g_m"])
     bad |= ~np.isfinite(th2)
     fallback[rows[bad]] = True                # not expected: the path solved these points
     m_LS, m_HS = s["m_LS"], s["m_HS"]

@@ -77,6 +77,7 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
     n_b = np.where(limit_max, n_hi, n_lo)
     state = dict(T_so=x0.copy(), T_m=out.T_m[rows].copy(), T_c=out.T_c[rows].copy(),
                  branch=out.branch[rows].copy(), done=np.zeros(len(rows), bool))
+    guess_branch = state["branch"].copy()             # the scalar search's trials start from it
     tried = np.zeros((len(rows), 2), dtype=bool)       # [sp, bound] tried
     for _ in range(2):
         sp = np.flatnonzero(~state["done"] & (state["branch"] == SP) & ~tried[:, 0])
@@ -87,7 +88,7 @@ def float_ls(fs: Flowsheet, todo, T_m_sp, p_sp, T_c_max: float, out: Outcome, ls
         if len(bd):
             tried[bd, 1] = True
             _float_bound(fs, rows[bd], T_m_sp, n_b[bd], lo[bd], hi[bd], state, bd)
-    fails = _first_trial(fs, rows, T_m_sp, p_sp, T_c_max, x0, n_b, limit_max, state)
+    fails = _first_trial(fs, rows, T_m_sp, x0, n_b, limit_max, guess_branch, state)
     done = state["done"]
     fs.set_source(rows[done], state["T_so"][done])
     fs.set_source(rows[~done], T_sp[rows[~done]])
@@ -148,49 +149,52 @@ def _bracketed(f, a, fa, b, fb, ok):
     through the two newest points, bisection where it leaves the bracket. Returns (x, converged)."""
     x_p, f_p, x, fx = a, fa, b, fb
     conv = np.zeros(len(a), bool)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for _ in range(MAX_ITER):
-            conv = ok & ((np.abs(fx) < LS_TOL) | (np.abs(b - a) < 1e-11))
-            if np.all(conv | ~ok):
-                break
-            xn = x - fx * (x - x_p) / (fx - f_p)
-            inside = (xn > np.minimum(a, b)) & (xn < np.maximum(a, b))
-            xn = np.where(conv | ~ok, x, np.where(inside, xn, 0.5 * (a + b)))
-            fn = f(xn)
-            ok &= np.isfinite(fn) | conv
-            lo_side = np.sign(fn) == np.sign(fa)
-            a, fa = np.where(lo_side & ~conv, xn, a), np.where(lo_side & ~conv, fn, fa)
-            b, fb = np.where(~lo_side & ~conv, xn, b), np.where(~lo_side & ~conv, fn, fb)
-            x_p, f_p = np.where(conv, x_p, x), np.where(conv, f_p, fx)
-            x, fx = np.where(conv, x, xn), np.where(conv, fx, fn)
+    for _ in range(MAX_ITER):
+        conv = ok & ((np.abs(fx) < LS_TOL) | (np.abs(b - a) < 1e-11))
+        if np.all(conv | ~ok):
+            break
+        xn = x - fx * (x - x_p) / (fx - f_p)
+        inside = (xn > np.minimum(a, b)) & (xn < np.maximum(a, b))
+        xn = np.where(conv | ~ok, x, np.where(inside, xn, 0.5 * (a + b)))
+        fn = f(xn)
+        ok &= np.isfinite(fn) | conv
+        lo_side = np.sign(fn) == np.sign(fa)
+        a, fa = np.where(lo_side & ~conv, xn, a), np.where(lo_side & ~conv, fn, fa)
+        b, fb = np.where(~lo_side & ~conv, xn, b), np.where(~lo_side & ~conv, fn, fb)
+        x_p, f_p = np.where(conv, x_p, x), np.where(conv, f_p, fx)
+        x, fx = np.where(conv, x, xn), np.where(conv, fx, fn)
     return x, conv
 
 
-def _first_trial(fs: Flowsheet, rows, T_m_sp, p_sp, T_c_max, x0, n_b, limit_max, state: dict) -> np.ndarray:
+def _first_trial(fs: Flowsheet, rows, T_m_sp, x0, n_b, limit_max, guess_branch, state: dict) -> np.ndarray:
     """The scalar search counts a trial that cannot be solved as lying on the input's side. Its first
-    trial (the duty-proportional estimate) lies beyond the root for a convex N_LS(T_so), where the
-    flowsheet may fail for too little duty (p_m_above_p_c, hs_speed_low). Then every later trial lies
-    beyond that one, none comes within LS_SPEED_LOOSE of the bound, and the search fails the row.
-    Solves the first trial (as the scalar path does) where it lies beyond the root found here; returns
-    the rows whose search so fails. Rows whose failed first trial lies too close to the root to be
-    sure are left undone (the scalar path)."""
+    trial (the duty-proportional estimate x0) lies beyond the root for a convex N_LS(T_so), with less
+    duty; where the condenser then cannot work above p_m (p_m_above_p_c), the search walks away from
+    the root and fails the row: every later trial lies beyond that one and none comes within
+    LS_SPEED_LOOSE of the bound. Returns the rows whose search so fails.
+
+    The scalar trial is a solve warm-started from the input's point. With T_m at the set point
+    ("sp") it fails that way exactly where the condenser residual at the lowest condensing
+    temperature, T_m + 0.05 K (or T_sink,in + 0.05 K), is already positive: no root above it. That is
+    one evaluation here; a row whose evaluation there raises goes to the scalar path. A trial from an
+    HS-bound point starts with the joint Newton at the bound, which holds at less duty: not checked."""
     T_so = state["T_so"]
     fails = np.zeros(len(rows), bool)
-    beyond = state["done"] & np.where(limit_max, x0 > T_so + 1e-9, x0 < T_so - 1e-9)
+    beyond = state["done"] & np.where(limit_max, x0 > T_so + 1e-9, x0 < T_so - 1e-9) & (guess_branch == SP)
     chk = np.flatnonzero(beyond)
     if not len(chk):
         return fails
     r = rows[chk]
     fs.set_source(r, x0[chk])
-    o = Outcome(len(fs.T_so))
-    solve_cold(fs, r, T_m_sp, p_sp, T_c_max, o)
-    bad = o.code[r] != ""
-    state["done"][chk[bad]] = False
-    # how far from the bound the first trial's LS speed lies (T_m of the root: exact at "sp")
-    f0 = fs.ls_speed(r, state["T_m"][chk])[0] - n_b[chk]
-    sure = bad & (o.code[r] != FALLBACK) & (np.abs(f0) > 2.0 * LS_SPEED_LOOSE)
-    fails[chk[sure]] = True
+    T_m = T_m_sp[r]
+    lo = np.maximum(fs.T_ki[r] + 0.05, T_m + 0.05)
+    ev = fs.evaluate(r, T_m, lo)
+    f0 = fs.ls_speed(r, T_m)[0] - n_b[chk]
     fs.set_source(r, T_so[chk])
+    raised = ev["err"] != E_OK
+    no_root = ~raised & (ev["r"] > 0.0)
+    state["done"][chk[raised | no_root]] = False
+    fails[chk[no_root & (np.abs(f0) > 2.0 * LS_SPEED_LOOSE)]] = True
     return fails
 
 

@@ -148,8 +148,7 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         a[act] = np.where(neg, xa, a[act])
         b[act] = np.where(neg, b[act], xa)
         zero = (sa == 0.0) | ~np.isfinite(sa)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xn = xa - fa / sa
+        xn = xa - fa / sa
         aa, bb = a[act], b[act]
         both = np.isfinite(aa) & np.isfinite(bb)
         xb = np.where((np.minimum(aa, bb) < xn) & (xn < np.maximum(aa, bb)), xn, 0.5 * (aa + bb))
@@ -165,8 +164,7 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         if not len(act):
             break
         fn, ok = F(act, xn)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_new = (fn - fa) / (xn - xa)
+        s_new = (fn - fa) / (xn - xa)
         upd = (xn != xa) & (s_new != 0.0) & np.isfinite(s_new)
         slope[act] = np.where(upd, s_new, slope[act])
         x[act], fx[act] = xn, fn
@@ -290,14 +288,12 @@ def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max):
         f0, f1 = F0[act], F1[act]
         det = a * d - b * c
         fin = (det != 0.0) & np.isfinite(det)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dm = -(d * f0 - b * f1) / det
-            dc = -(a * f1 - c * f0) / det
+        dm = -(d * f0 - b * f1) / det
+        dc = -(a * f1 - c * f0) / det
         big = np.maximum(np.abs(dm), np.abs(dc))
         shrink = big > BOUND_NEWTON_STEP
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dm = np.where(shrink, dm * BOUND_NEWTON_STEP / big, dm)
-            dc = np.where(shrink, dc * BOUND_NEWTON_STEP / big, dc)
+        dm = np.where(shrink, dm * BOUND_NEWTON_STEP / big, dm)
+        dc = np.where(shrink, dc * BOUND_NEWTON_STEP / big, dc)
         m1, c1 = T_m[act] + dm, T_c[act] + dc
         inside = fin & (lo[act] <= m1) & (m1 <= hi[act]) & (T_c_lo[act] < c1) & (c1 <= T_c_max) & (m1 < c1 - 0.05)
         act, dm, dc, m1, c1 = act[inside], dm[inside], dc[inside], m1[inside], c1[inside]

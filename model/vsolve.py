@@ -358,16 +358,18 @@ def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome)
 
 
 def _final(tc: TcSolver, pos, T_m, branch: int, out: Outcome, raised: Raised) -> None:
-    """``T_c = solve_Tc(T_m)`` once the branch is settled: the last solve's T_c where it lies at
-    least 0.5 K above the secant's lower limit (the scalar starts there and returns at once);
-    elsewhere the scalar starts a new secant with its own trial points: those rows go to it."""
+    """``T_c = solve_Tc(T_m)`` once the branch is settled. The scalar starts its secant at the last
+    T_c raised to 0.5 K above the lower limit: from the last T_c itself (it returns at once) unless
+    that lies closer to the limit; then the secant runs again (warm slope), as here."""
     if not len(pos):
         return
     lo = np.maximum(tc.T_c_lo[pos], T_m + 0.05)
-    T_c = tc.T_c_guess[pos]
-    ok = (T_c >= lo + 0.5) & (T_c <= tc.T_c_max)
-    nb = int((~ok).sum())
-    raised.put(pos[~ok], [3] * nb, [FALLBACK] * nb, ["final condensing-temperature solve restarts"] * nb)
+    T_c = tc.T_c_guess[pos].copy()
+    again = ~((T_c >= lo + 0.5) & (T_c <= tc.T_c_max))
+    if again.any():
+        k = np.flatnonzero(again)
+        T_c[k], _ = tc(pos[k], T_m[k], raised)
+    ok = np.isfinite(T_c)
     rows = tc.idx[pos[ok]]
     out.branch[rows], out.T_m[rows], out.T_c[rows] = branch, T_m[ok], T_c[ok]
 

@@ -35,7 +35,8 @@ from .fluid import get_fluid
 from .params import Compressor, PlantParams
 from .units import BAR, C_to_K, K_to_C, Pa_to_barg, barg_to_Pa, m3h_to_m3s
 from .vflowsheet import Flowsheet
-from .vfloat import float_ls
+from .vfloat import FloatLS
+from .vtasks import run
 from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
 
 SOLVED_FLAGS = ("ls_speed_high", "ls_speed_low", "negative_pinch")
@@ -204,13 +205,13 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
     T_c_max = fluid.sat_p(min(params.p_c_max, fluid.p_crit * 0.98)).T
     todo = np.flatnonzero((status == "") & ~fallback)
     out = Outcome(n)
-    if len(todo):
-        solve_cold(fs, todo, T_m_sp, p_sp, T_c_max, out)
-    t1 = time.process_time()
     ls_limit = np.full(n, "", dtype=object)
-    if ls_mode == "float" and len(todo):
-        float_ls(fs, todo, T_m_sp, p_sp, T_c_max, out, ls_limit)
-    t2 = time.process_time()
+    if len(todo):
+        # the cold path of every row; in "float" mode a row floats as soon as its outcome at the
+        # input is final, beside the rows still being solved (model.vtasks)
+        on_done = FloatLS(fs, T_m_sp, p_sp, T_c_max, out, ls_limit).task if ls_mode == "float" else None
+        run(solve_cold(fs, todo, T_m_sp, p_sp, T_c_max, out, on_done))
+    t1 = t2 = time.process_time()
     for i in todo:
         if out.code[i] == FALLBACK:
             fallback[i] = True
@@ -226,8 +227,7 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
     for i in np.flatnonzero(fallback):
         branch[i] = _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason)
     status[(status == "")] = "ok"
-    timings = {"cold_path_s": t1 - t0, "ls_float_s": t2 - t1, "assemble_s": t3 - t2,
-               "fallback_s": time.process_time() - t3}
+    timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3}
     return VResult(values, status, reason, branch, fallback, timings)
 
 

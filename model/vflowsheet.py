@@ -42,6 +42,31 @@ SC_ITER = 30
 SC_FINISH = 1e-6                         # Newton step (relative) below which one update finishes
 
 
+class MSide:
+    """The intermediate side of rows at their T_m (``Flowsheet.m_side``) as one 2-D array, so that
+    taking rows and joining requests are single operations: ``ms["p_m"]`` is a row of it."""
+    KEYS = ("T_m", "p_m", "h_f_m", "h_g_m", "s_g_m", "rho_g_m", "m_LS", "n_LS", "ev_LS", "eta_LS",
+            "pi_LS", "h2s", "h2", "num", "err")
+    _AT = {k: i for i, k in enumerate(KEYS)}
+    __slots__ = ("a",)
+
+    def __init__(self, a: np.ndarray) -> None:
+        self.a = a
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.a[self._AT[key]]
+
+    def keys(self):
+        return self.KEYS
+
+    def take(self, pos) -> "MSide":
+        return MSide(self.a[:, pos])
+
+    @staticmethod
+    def concat(parts) -> "MSide":
+        return MSide(np.concatenate([p.a for p in parts], axis=1))
+
+
 def counterflow_eps_v(C_a, C_b, UA):
     """``model.components.counterflow_eps`` for arrays: (effectiveness, C_min)."""
     C_min = np.minimum(C_a, C_b)
@@ -112,7 +137,7 @@ class Flowsheet:
         return n_LS, ev, m_LS, pi
 
     # ---- intermediate side: fixed by T_m ----------------------------------------------------------
-    def m_side(self, idx, T_m) -> dict:
+    def m_side(self, idx, T_m) -> MSide:
         """Saturation at T_m [K] and the LS stage for the rows idx (``_Point.ls_side``)."""
         tab = self.tab
         inside = (T_m >= VAP_T_MIN) & (T_m <= VAP_T_MAX)
@@ -126,18 +151,17 @@ class Flowsheet:
         h2 = h1 + (h2s - h1) / eta
         ok = inside & (n_LS == n_LS) & (ds >= 0.0) & (ds <= DS_MAX)
         eta_ok = (eta > 0.05) & (eta <= 1.0)
-        err = np.where(ok, np.where(eta_ok, E_OK, E_ETA_LS), E_FALLBACK).astype(np.int8)
+        err = np.where(ok, np.where(eta_ok, E_OK, E_ETA_LS), E_FALLBACK)
         good = ok & eta_ok
         if good.all():
             self.n_LS[idx] = n_LS
         else:
             self.n_LS[idx[good]] = n_LS[good]
-        return dict(T_m=T_m, p_m=p_m, h_f_m=h_f_m, h_g_m=h_g_m, s_g_m=s_g_m, rho_g_m=rho_g_m,
-                    m_LS=m_LS, n_LS=n_LS, ev_LS=ev_LS, eta_LS=eta, pi_LS=pi, h2s=h2s, h2=h2,
-                    num=m_LS * (h2 - h_f_m), err=err)
+        return MSide(np.stack([T_m, p_m, h_f_m, h_g_m, s_g_m, rho_g_m, m_LS, n_LS, ev_LS, eta, pi, h2s,
+                               h2, m_LS * (h2 - h_f_m), err]))
 
     # ---- the flowsheet at (T_m, T_c) --------------------------------------------------------------
-    def evaluate(self, idx, T_m, T_c, ms: dict | None = None, full: bool = False) -> dict:
+    def evaluate(self, idx, T_m, T_c, ms: MSide | None = None, full: bool = False) -> dict:
         """Condenser-zone residual r [-] (relative to Q_source) and HS speed ratio n_HS [-] at
         (T_m, T_c) [K] for the rows idx, with ``err`` (E_*) where the scalar evaluation raises.
         ``ms``: ``m_side(idx, T_m)`` when T_m is the same as there. ``full``: every state."""
@@ -184,12 +208,13 @@ class Flowsheet:
             why = err
             self.n_HS[idx], self.d_SC[idx], self.phi_HS[idx], self.dT_SC[idx] = n_HS, d_SC, phi, dT
         else:
-            err, why = self._errors(idx, T_m, T_c, inside, ms["err"], dT, sc_ok, n_HS, eta_ok, tab_ok, r)
+            err, why = self._errors(idx, T_m, T_c, inside, ms["err"].astype(np.int8), dT, sc_ok, n_HS,
+                                    eta_ok, tab_ok, r)
             g = idx[good]
             self.n_HS[g], self.d_SC[g], self.phi_HS[g], self.dT_SC[g] = n_HS[good], d_SC[good], phi[good], dT[good]
         out = dict(r=r, n_HS=n_HS, err=err, eta_HS=eta_HS, pi_HS=pi_HS, why=why)
         if full:
-            out.update(ms)
+            out.update({k: ms[k] for k in MSide.KEYS})
             out.update(err=err, T_c=T_c, p_c=p_c, h_f_c=h_f_c, h_g_c=h_g_c, m_HS=m, h_SC=h_SC,
                        T_SC=T_c - d_SC, Q_SC=Q_SC, ev_HS=ev_HS, h4s=h4s, h4=h4, T4=T4,
                        T_w1=T_w1, T_w2=T_w2, Q_con=Q_con, Q_DSH=Q_DSH, cp_v=cp_v, h_DSH=h_DSH,

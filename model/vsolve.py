@@ -23,7 +23,8 @@ import numpy as np
 from .cycle import BOUND_NEWTON_ITER, BOUND_NEWTON_STEP, ENERGY_TOL, MAX_ITER, SPEED_TOL
 from .units import BAR
 from .vflowsheet import (CONVERGENCE, E_ETA_HS, E_ETA_LS, E_FALLBACK, E_OK, E_ORDER, E_SINK, FALLBACK_WHY,
-                         Flowsheet)
+                         Flowsheet, MSide)
+from .vtasks import Eval, Spawn
 
 FALLBACK = "fallback"
 SP, HS_MAX, HS_MIN = 0, 1, 2
@@ -31,9 +32,11 @@ BRANCHES = ("sp", "hs_max", "hs_min")
 _WHAT_TC = "condensing temperature"
 
 
-def take(d: dict, pos) -> dict:
-    """The rows ``pos`` of every array in d."""
-    return {k: (v[pos] if isinstance(v, np.ndarray) and v.ndim else v) for k, v in d.items()}
+def take(d, pos):
+    """The rows ``pos`` of an MSide, or of every array in a mapping."""
+    if isinstance(d, MSide):
+        return d.take(pos)
+    return {k: (v[pos] if isinstance(v, np.ndarray) and v.ndim else v) for k in d.keys() for v in (d[k],)}
 
 
 def eval_messages(fs: Flowsheet, idx, err, T_m, T_c, ms: dict, ev: dict) -> list[str]:
@@ -116,15 +119,16 @@ class Raised:
 
 
 def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
-    """``model.cycle._secant`` for many rows: F(pos, x) -> (f, ok) evaluates the rows at positions
-    pos (ok False where the evaluation raised; F records what). Returns (x, fx, slope, kind, msg):
-    kind 0 converged, 1 an evaluation raised, 2 the secant raised ConvergenceError (msg its text)."""
+    """``model.cycle._secant`` for many rows (a task): ``yield from F(pos, x)`` -> (f, ok) evaluates
+    the rows at positions pos (ok False where the evaluation raised; F records what). Returns (x, fx,
+    slope, kind, msg): kind 0 converged, 1 an evaluation raised, 2 the secant raised
+    ConvergenceError (msg its text)."""
     n = len(x0)
     x = np.minimum(np.maximum(x0, lo), hi)
     kind = np.full(n, -1, dtype=np.int8)         # -1 still iterating
     msg = np.full(n, "", dtype=object)
     pos = np.arange(n)
-    fx, ok = F(pos, x)
+    fx, ok = yield from F(pos, x)
     fx = np.array(fx, dtype=float)
     kind[~ok] = 1
     kind[ok & (np.abs(fx) < tol)] = 0
@@ -135,7 +139,7 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         xa = x[need]
         h = np.where(np.abs(xa) > 1.0, 1e-3, 1e-4)
         x1 = np.where(xa + h <= hi[need], xa + h, xa - h)
-        f1, ok = F(need, x1)
+        f1, ok = yield from F(need, x1)
         kind[need[~ok]] = 1
         slope[need] = (f1 - fx[need]) / (x1 - xa)
         act = act[kind[act] == -1]
@@ -163,7 +167,7 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         act, xa, fa, xn = act[keep], xa[keep], fa[keep], xn[keep]
         if not len(act):
             break
-        fn, ok = F(act, xn)
+        fn, ok = yield from F(act, xn)
         s_new = (fn - fa) / (xn - xa)
         upd = (xn != xa) & (s_new != 0.0) & np.isfinite(s_new)
         slope[act] = np.where(upd, s_new, slope[act])
@@ -190,9 +194,9 @@ class TcSolver:
         self.T_c_lo = fs.T_ki[idx] + 0.05
         self.T_c_max = T_c_max
 
-    def __call__(self, pos, T_m, raised: Raised, ms: dict | None = None):
-        """(T_c, n_HS) at T_m [K] for the positions pos; NaN and an entry in ``raised`` (indexed
-        by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c)."""
+    def solve(self, pos, T_m, raised: Raised, ms: MSide | None = None):
+        """(T_c, n_HS) at T_m [K] for the positions pos (a task); NaN and an entry in ``raised``
+        (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c)."""
         fs, idx = self.fs, self.idx[pos]
         if ms is None:
             ms = fs.m_side(idx, T_m)
@@ -203,19 +207,19 @@ class TcSolver:
 
         def F(p, x):
             mp = take(ms, p)
-            ev = fs.evaluate(idx[p], T_m[p], x, ms=mp)
+            ev = yield Eval(fs, idx[p], T_m[p], x, mp)
             sub.put_eval(fs, p, idx[p], ev["err"], T_m[p], x, mp, ev)
             n_HS[p] = ev["n_HS"]
             return ev["r"], ev["err"] == E_OK
 
         x0 = np.minimum(np.maximum(self.T_c_guess[pos], lo + 0.5), hi)
-        x, _, slope, kind, msg = secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC)
+        x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC)
         sec = np.flatnonzero(kind == 2)
         sub.put(sec, np.ones(len(sec), dtype=np.int8), ["no_convergence"] * len(sec), msg[sec])
         cv = np.flatnonzero(kind != 0)
         cv = cv[sub.cls[cv] == 1]                     # ConvergenceError: the scalar's diagnosis
         if len(cv):
-            self._diagnose(pos[cv], idx[cv], T_m[cv], take(ms, cv), lo[cv], cv, sub)
+            yield from self._diagnose(pos[cv], idx[cv], T_m[cv], take(ms, cv), lo[cv], cv, sub)
         solved = kind == 0
         g = pos[solved]
         self.T_c_guess[g], self.slope_c[g] = x[solved], slope[solved]
@@ -223,7 +227,7 @@ class TcSolver:
         raised.put(pos[bad], sub.cls[bad], sub.code[bad], sub.msg[bad])
         return np.where(solved, x, np.nan), np.where(solved, n_HS, np.nan)
 
-    def _diagnose(self, pos, idx, T_m, ms, lo, at, sub: Raised) -> None:
+    def _diagnose(self, pos, idx, T_m, ms, lo, at, sub: Raised):
         """The ``except ConvergenceError`` of ``solve_Tc`` for rows whose entry in ``sub`` (at
         positions ``at``) is a ConvergenceError: p_c_high where even T_c_max leaves the duty
         unrejected, p_m_above_p_c where the condenser would work below p_m (either evaluation may
@@ -232,7 +236,7 @@ class TcSolver:
         k = len(idx)
         new = Raised(k)
         T_cm = np.full(k, self.T_c_max)
-        ev = fs.evaluate(idx, T_m, T_cm, ms=ms)
+        ev = yield Eval(fs, idx, T_m, T_cm, ms)
         new.put_eval(fs, np.arange(k), idx, ev["err"], T_m, T_cm, ms, ev)
         high = np.flatnonzero((new.cls == 0) & (ev["r"] < 0.0))
         new.put(high, [2] * len(high), ["p_c_high"] * len(high),
@@ -241,7 +245,7 @@ class TcSolver:
         check = np.flatnonzero((new.cls == 0) & (T_m + 0.05 >= self.T_c_lo[pos]))
         if len(check):
             ms2 = take(ms, check)
-            ev2 = fs.evaluate(idx[check], T_m[check], lo[check], ms=ms2)
+            ev2 = yield Eval(fs, idx[check], T_m[check], lo[check], ms2)
             new.put_eval(fs, check, idx[check], ev2["err"], T_m[check], lo[check], ms2, ev2)
             above = check[(ev2["err"] == E_OK) & (ev2["r"] > 0.0)]
             new.put(above, [2] * len(above), ["p_m_above_p_c"] * len(above),
@@ -252,20 +256,29 @@ class TcSolver:
         sub.put(at[repl], new.cls[repl], new.code[repl], new.msg[repl])
 
 
-def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max):
+def _spawn(task):
+    """Start ``task`` beside the current task (nothing for None)."""
+    if task is not None:
+        yield Spawn(task)
+
+
+def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max, give_up=None):
     """``model.cycle._bound_newton`` from a cold start (finite-difference Jacobian) for the rows
-    idx: (T_m, T_c, ok); ok False where the scalar function returns None."""
+    idx (a task): (T_m, T_c, ok); ok False where the scalar function returns None. ``give_up(pos)``:
+    a task to start for the rows (positions) as soon as the function would return None for them."""
     n = len(idx)
     ok = (lo <= T_m) & (T_m <= hi) & (T_c_lo < T_c) & (T_c <= T_c_max) & (T_m < T_c - 0.05)
     done = np.zeros(n, dtype=bool)
     act = np.flatnonzero(ok)
+    if give_up is not None and not ok.all():
+        yield from _spawn(give_up(np.flatnonzero(~ok)))
     if not len(act):
         return T_m, T_c, done
     # F at the start and the two finite-difference points in one evaluation of 3x the rows
     h = 1e-3
     m3 = np.concatenate([T_m[act], T_m[act] + h, T_m[act]])
     c3 = np.concatenate([T_c[act], T_c[act], T_c[act] + h])
-    ev = fs.evaluate(np.concatenate([idx[act]] * 3), m3, c3)
+    ev = yield Eval(fs, np.concatenate([idx[act]] * 3), m3, c3)
     k = len(act)
     good = (ev["err"][:k] == E_OK) & (ev["err"][k:2 * k] == E_OK) & (ev["err"][2 * k:] == E_OK)
     r, nh = ev["r"], ev["n_HS"] - np.concatenate([bound[act]] * 3)
@@ -274,6 +287,8 @@ def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max):
     F0[act], F1[act] = r[:k], nh[:k]
     Ja[act], Jb[act] = (r[k:2 * k] - r[:k]) / h, (r[2 * k:] - r[:k]) / h
     Jc[act], Jd[act] = (nh[k:2 * k] - nh[:k]) / h, (nh[2 * k:] - nh[:k]) / h
+    if give_up is not None and not good.all():
+        yield from _spawn(give_up(act[~good]))
     act = act[good]
     T_m, T_c = T_m.copy(), T_c.copy()
     for _ in range(BOUND_NEWTON_ITER):
@@ -296,11 +311,13 @@ def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max):
         dc = np.where(shrink, dc * BOUND_NEWTON_STEP / big, dc)
         m1, c1 = T_m[act] + dm, T_c[act] + dc
         inside = fin & (lo[act] <= m1) & (m1 <= hi[act]) & (T_c_lo[act] < c1) & (c1 <= T_c_max) & (m1 < c1 - 0.05)
+        if give_up is not None and not inside.all():
+            yield from _spawn(give_up(act[~inside]))
         act, dm, dc, m1, c1 = act[inside], dm[inside], dc[inside], m1[inside], c1[inside]
         a, b, c, d, f0, f1 = a[inside], b[inside], c[inside], d[inside], f0[inside], f1[inside]
         if not len(act):
             break
-        ev = fs.evaluate(idx[act], m1, c1)
+        ev = yield Eval(fs, idx[act], m1, c1)
         good = ev["err"] == E_OK
         g0, g1 = ev["r"], ev["n_HS"] - bound[act]
         dd = dm * dm + dc * dc
@@ -309,13 +326,20 @@ def bound_newton(fs: Flowsheet, idx, T_m, T_c, bound, lo, hi, T_c_lo, T_c_max):
         Ja[act], Jb[act] = a + u0 * dm / dd, b + u0 * dc / dd
         Jc[act], Jd[act] = c + u1 * dm / dd, d + u1 * dc / dd
         T_m[act], T_c[act], F0[act], F1[act] = m1, c1, g0, g1
+        if give_up is not None and not good.all():
+            yield from _spawn(give_up(act[~good]))
         act = act[good]
+    if give_up is not None and len(act):
+        yield from _spawn(give_up(act))                   # not converged in its iterations
     return T_m, T_c, done
 
 
-def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome) -> None:
-    """``model.cycle._solve`` without a guess for the rows idx (their inputs passed the checks):
-    fills ``out`` (code '' and branch, T_m, T_c where solved)."""
+def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome, on_done=None):
+    """``model.cycle._solve`` without a guess for the rows idx (their inputs passed the checks), as a
+    task: fills ``out`` (code '' and branch, T_m, T_c where solved). The rows whose joint Newton
+    gives up continue with the nested secants as tasks of their own, beside the others: the outcome
+    of every row is final when all tasks have ended. ``on_done(rows)``: a task to start for
+    flowsheet rows as soon as their outcome is final."""
     hs = fs.par.comp_HS
     n_max, n_min = hs.N_max / hs.N_nom, hs.N_min / hs.N_nom
     n = len(idx)
@@ -324,6 +348,15 @@ def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome)
     T_m_sp = T_m_sp[idx]
     tc = TcSolver(fs, idx, fs.T_ki[idx] + 1.3 * fs.Q_s[idx] / fs.C_w[idx] + 3.0, T_c_max)
     raised = Raised(n)
+
+    def finish(pos):
+        """Record the outcome of the rows pos (their solution is in ``out`` already)."""
+        bad = pos[raised.cls[pos] != 0]
+        out.fail(idx[bad], [FALLBACK if c == 3 else code for c, code in zip(raised.cls[bad], raised.code[bad])],
+                 raised.msg[bad])
+        if on_done is not None and len(pos):
+            yield Spawn(on_done(idx[pos]))
+
     below = p_m_sp[idx] <= fs.p_e[idx] * 1.001       # the set point cannot be held: HS flat out
     branch = np.where(below, HS_MAX, SP).astype(np.int8)
     lo = np.where(below, T_e + 0.05, T_m_sp)
@@ -331,36 +364,40 @@ def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome)
     test = np.flatnonzero(~below)
     if len(test):
         # the branch test: the HS speed needed AT the set point
-        T_c, n_sp = tc(test, T_m_sp[test], raised)
+        T_c, n_sp = yield from tc.solve(test, T_m_sp[test], raised)
         up, down = n_sp > n_max + SPEED_TOL, n_sp < n_min - SPEED_TOL
         branch[test] = np.where(up, HS_MAX, np.where(down, HS_MIN, SP))
         lo[test] = np.where(down, T_e[test] + 0.05, T_m_sp[test])
         hi[test] = np.where(down, T_m_sp[test], T_c - 0.1)
         sp = test[~(up | down) & np.isfinite(T_c)]
-        _final(tc, sp, T_m_sp[sp], SP, out, raised)
+        yield from _final(tc, sp, T_m_sp[sp], SP, out, raised)
+        yield from finish(test[(raised.cls[test] != 0) | ~(up | down)])
     r = np.flatnonzero((branch != SP) & (raised.cls == 0))
-    if len(r):
-        T_m0 = np.where((lo[r] < T_m_sp[r]) & (T_m_sp[r] < hi[r]), T_m_sp[r], 0.5 * (lo[r] + hi[r]))
-        bound = np.where(branch[r] == HS_MAX, n_max, n_min)
-        T_m, T_c, ok = bound_newton(fs, idx[r], T_m0, tc.T_c_guess[r], bound, lo[r], hi[r],
-                                    np.maximum(T_c_lo[r], T_e[r] + 0.1), T_c_max)
-        j = r[ok]
-        tc.T_c_guess[j] = T_c[ok]
-        for b in (HS_MAX, HS_MIN):
-            sel = branch[j] == b
-            _final(tc, j[sel], T_m[ok][sel], b, out, raised)
-        nested = r[~ok]                # the joint Newton gave up: nested secants, T_m outer
-        if len(nested):
-            _nested(tc, nested, T_m0[~ok], bound[~ok], lo[nested], hi[nested], branch[nested], out, raised)
-    bad = np.flatnonzero(raised.cls != 0)
-    out.fail(idx[bad], [FALLBACK if c == 3 else code for c, code in zip(raised.cls[bad], raised.code[bad])],
-             raised.msg[bad])
+    if not len(r):
+        return
+    T_m0 = np.where((lo[r] < T_m_sp[r]) & (T_m_sp[r] < hi[r]), T_m_sp[r], 0.5 * (lo[r] + hi[r]))
+    bound = np.where(branch[r] == HS_MAX, n_max, n_min)
+
+    def nested(p):
+        """The rows (positions p in r) whose joint Newton gave up: the nested secants."""
+        q = r[p]
+        yield from _nested(tc, q, T_m0[p], bound[p], lo[q], hi[q], branch[q], out, raised)
+        yield from finish(q)
+
+    T_m, T_c, ok = yield from bound_newton(fs, idx[r], T_m0, tc.T_c_guess[r], bound, lo[r], hi[r],
+                                           np.maximum(T_c_lo[r], T_e[r] + 0.1), T_c_max, nested)
+    j = r[ok]
+    tc.T_c_guess[j] = T_c[ok]
+    for b in (HS_MAX, HS_MIN):
+        sel = branch[j] == b
+        yield from _final(tc, j[sel], T_m[ok][sel], b, out, raised)
+    yield from finish(j)
 
 
-def _final(tc: TcSolver, pos, T_m, branch: int, out: Outcome, raised: Raised) -> None:
-    """``T_c = solve_Tc(T_m)`` once the branch is settled. The scalar starts its secant at the last
-    T_c raised to 0.5 K above the lower limit: from the last T_c itself (it returns at once) unless
-    that lies closer to the limit; then the secant runs again (warm slope), as here."""
+def _final(tc: TcSolver, pos, T_m, branch: int, out: Outcome, raised: Raised):
+    """``T_c = solve_Tc(T_m)`` once the branch is settled (a task). The scalar starts its secant at
+    the last T_c raised to 0.5 K above the lower limit: from the last T_c itself (it returns at
+    once) unless that lies closer to the limit; then the secant runs again (warm slope), as here."""
     if not len(pos):
         return
     lo = np.maximum(tc.T_c_lo[pos], T_m + 0.05)
@@ -368,24 +405,24 @@ def _final(tc: TcSolver, pos, T_m, branch: int, out: Outcome, raised: Raised) ->
     again = ~((T_c >= lo + 0.5) & (T_c <= tc.T_c_max))
     if again.any():
         k = np.flatnonzero(again)
-        T_c[k], _ = tc(pos[k], T_m[k], raised)
+        T_c[k], _ = yield from tc.solve(pos[k], T_m[k], raised)
     ok = np.isfinite(T_c)
     rows = tc.idx[pos[ok]]
     out.branch[rows], out.T_m[rows], out.T_c[rows] = branch, T_m[ok], T_c[ok]
 
 
-def _nested(tc: TcSolver, pos, T_m0, bound, lo, hi, branch, out: Outcome, raised: Raised) -> None:
-    """The nested secants of ``_solve`` where the joint Newton gave up: a secant on T_m for the HS
-    speed bound (cold slope), each trial solving T_c warm from the last, and the hs_speed_low/high
-    diagnosis where it raises ConvergenceError."""
+def _nested(tc: TcSolver, pos, T_m0, bound, lo, hi, branch, out: Outcome, raised: Raised):
+    """The nested secants of ``_solve`` where the joint Newton gave up (a task): a secant on T_m for
+    the HS speed bound (cold slope), each trial solving T_c warm from the last, and the
+    hs_speed_low/high diagnosis where it raises ConvergenceError."""
     hs = tc.fs.par.comp_HS
     inner = Raised(len(tc.idx))
 
     def g(p, T_m):
-        T_c, n_HS = tc(pos[p], T_m, inner)
+        T_c, n_HS = yield from tc.solve(pos[p], T_m, inner)
         return n_HS - bound[p], np.isfinite(T_c)
 
-    x, _, _, kind, msg = secant_v(g, T_m0, np.zeros(len(pos)), SPEED_TOL, lo, hi, "@")
+    x, _, _, kind, msg = yield from secant_v(g, T_m0, np.zeros(len(pos)), SPEED_TOL, lo, hi, "@")
     q = pos
     conv = (kind == 2) | ((kind == 1) & (inner.cls[q] == 1))
     other = np.flatnonzero((kind == 1) & ~conv)
@@ -396,7 +433,7 @@ def _nested(tc: TcSolver, pos, T_m0, bound, lo, hi, branch, out: Outcome, raised
                  if kind[k] == 2 else inner.msg[q[k]] for k in cv]
         diag = Raised(len(tc.idx))
         end = np.where(branch[cv] == HS_MIN, lo[cv], hi[cv])
-        _, n_HS = tc(q[cv], end, diag)
+        _, n_HS = yield from tc.solve(q[cv], end, diag)
         v = n_HS - bound[cv]
         for j, k in enumerate(cv):
             r = q[k]
@@ -415,4 +452,4 @@ def _nested(tc: TcSolver, pos, T_m0, bound, lo, hi, branch, out: Outcome, raised
     done = np.flatnonzero(kind == 0)
     for b in (HS_MAX, HS_MIN):
         sel = done[branch[done] == b]
-        _final(tc, q[sel], x[sel], b, out, raised)
+        yield from _final(tc, q[sel], x[sel], b, out, raised)

@@ -26,7 +26,7 @@ from .cycle import ENERGY_TOL, LS_SPEED_LOOSE, OVERLOAD, SPEED_TOL
 from .units import K_to_C
 from .vflowsheet import E_OK, Flowsheet
 from .vsolve import FALLBACK, HS_MAX, HS_MIN, SP, Outcome, Raised, TcSolver, solve_cold
-from .vtasks import Eval, Spawn
+from .vtasks import Eval, LSReq, Spawn
 
 LS_TOL = 1e-11           # LS speed ratio on its bound
 MAX_ITER = 40
@@ -155,19 +155,21 @@ def _float_sp(fs: Flowsheet, rows, T_m_sp, T_sp, n_b, lo, hi, T_c_max, state: di
     (bracketed secant), then the branch test at the floating point (the T_c secant from the last
     T_c)."""
     T_m = T_m_sp[rows]
+    k = len(rows)
 
     def f(x):
-        fs.set_source(rows, x)
-        return fs.ls_speed(rows, T_m)[0] - n_b
+        n_LS = yield LSReq(fs, np.concatenate([rows] * (len(x) // k)), x, np.concatenate([T_m] * (len(x) // k)))
+        return n_LS - np.concatenate([n_b] * (len(x) // k))
 
     x0 = state["T_so"][at]
     far = np.where(n_b > 1.0, hi, lo)               # N_max: toward T_in; N_min: toward colder
-    f_sp, f0, f_far = f(T_sp), f(x0), f(far)
+    f3 = yield from f(np.concatenate([T_sp, x0, far]))
+    f_sp, f0, f_far = f3[:k], f3[k:2 * k], f3[2 * k:]
     first = np.sign(f0) != np.sign(f_sp)
     a, fa = np.where(first, T_sp, x0), np.where(first, f_sp, f0)
     b, fb = np.where(first, x0, far), np.where(first, f0, f_far)
     ok = np.isfinite(fa) & np.isfinite(fb) & (np.sign(fa) != np.sign(fb))
-    x, conv = _bracketed(f, a, fa, b, fb, ok)
+    x, conv = yield from _bracketed(f, a, fa, b, fb, ok)
     conv &= ok & (x > np.minimum(lo, hi)) & (x <= np.maximum(lo, hi))
     fs.set_source(rows, x)
     # the branch test at the floating point
@@ -186,8 +188,9 @@ def _float_sp(fs: Flowsheet, rows, T_m_sp, T_sp, n_b, lo, hi, T_c_max, state: di
 
 
 def _bracketed(f, a, fa, b, fb, ok):
-    """Roots of f (all rows at once) in brackets [a, b] with f(a), f(b) of opposite signs: secant
-    through the two newest points, bisection where it leaves the bracket. Returns (x, converged)."""
+    """Roots of f (all rows at once; ``yield from f(x)``) in brackets [a, b] with f(a), f(b) of
+    opposite signs: secant through the two newest points, bisection where it leaves the bracket
+    (a task). Returns (x, converged)."""
     x_p, f_p, x, fx = a, fa, b, fb
     conv = np.zeros(len(a), bool)
     for _ in range(MAX_ITER):
@@ -197,7 +200,7 @@ def _bracketed(f, a, fa, b, fb, ok):
         xn = x - fx * (x - x_p) / (fx - f_p)
         inside = (xn > np.minimum(a, b)) & (xn < np.maximum(a, b))
         xn = np.where(conv | ~ok, x, np.where(inside, xn, 0.5 * (a + b)))
-        fn = f(xn)
+        fn = yield from f(xn)
         ok &= np.isfinite(fn) | conv
         lo_side = np.sign(fn) == np.sign(fa)
         a, fa = np.where(lo_side & ~conv, xn, a), np.where(lo_side & ~conv, fn, fa)

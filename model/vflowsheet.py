@@ -113,19 +113,30 @@ class Flowsheet:
             self.set_source(np.arange(n), self.T_so)
 
     # ---- source side: explicit in T_source,out ---------------------------------------------------
-    def set_source(self, idx, T_so) -> None:
-        """Evaporator duty and temperature, LS suction state for the rows idx at T_source,out [K]."""
+    def source(self, idx, T_so) -> tuple:
+        """(Q_source [W], T_e [K], p_e [Pa], h_g,e, h1 [J/kg], s1 [J/kg/K], rho1 [kg/m^3], ok) of the
+        rows idx at T_source,out T_so [K]: the evaporator and the LS suction state."""
         par, tab = self.par, self.tab
-        self.T_so[idx] = T_so
         C = self.C_s[idx]
-        self.Q_s[idx] = C * (self.T_si[idx] - T_so)
+        Q = C * (self.T_si[idx] - T_so)
         T_e = evaporator_T_e(self.T_si[idx], T_so, par.UA_eva, C)
-        self.T_e[idx] = T_e
         p_e, _, h_g, _, _ = tab.sat(T_e)
         h1, s1, rho1 = tab.vapour(T_e, np.full(len(T_e), par.superheat))
-        self.p_e[idx], self.h_g_e[idx] = p_e, h_g
-        self.h1[idx], self.s1[idx], self.rho1[idx] = h1, s1, rho1
-        self.src_ok[idx] = np.isfinite(p_e) & np.isfinite(h1) & np.isfinite(rho1) & (T_e <= VAP_T_MAX)
+        ok = np.isfinite(p_e) & np.isfinite(h1) & np.isfinite(rho1) & (T_e <= VAP_T_MAX)
+        return Q, T_e, p_e, h_g, h1, s1, rho1, ok
+
+    def set_source(self, idx, T_so) -> None:
+        """Evaporator duty and temperature, LS suction state for the rows idx at T_source,out [K]."""
+        self.T_so[idx] = T_so
+        (self.Q_s[idx], self.T_e[idx], self.p_e[idx], self.h_g_e[idx], self.h1[idx], self.s1[idx],
+         self.rho1[idx], self.src_ok[idx]) = self.source(idx, T_so)
+
+    def ls_speed_at(self, idx, T_so, T_m) -> np.ndarray:
+        """The LS speed ratio [-] of the rows idx at T_source,out T_so and T_m [K] (the LS side alone;
+        the rows' stored state is left as it is, so a row may appear several times)."""
+        Q, _, p_e, _, h1, _, rho1, _ = self.source(idx, T_so)
+        p_m, h_f_m = self.tab.sat(T_m)[:2]
+        return self.ls.speed_for_flow_v(Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
 
     def ls_speed(self, idx, T_m, sat_m=None):
         """LS speed ratio [-], eta_vol, m_LS [kg/s] and pressure ratio for the rows idx: the LS side
@@ -164,7 +175,8 @@ class Flowsheet:
     def evaluate(self, idx, T_m, T_c, ms: MSide | None = None, full: bool = False) -> dict:
         """Condenser-zone residual r [-] (relative to Q_source) and HS speed ratio n_HS [-] at
         (T_m, T_c) [K] for the rows idx, with ``err`` (E_*) where the scalar evaluation raises.
-        ``ms``: ``m_side(idx, T_m)`` when T_m is the same as there. ``full``: every state."""
+        ``ms``: ``m_side(idx, T_m)`` when T_m is the same as there (returned as "ms" either way).
+        ``full``: every state."""
         if ms is None:
             ms = self.m_side(idx, T_m)
         tab, hs = self.tab, self.hs
@@ -212,7 +224,7 @@ class Flowsheet:
                                     eta_ok, tab_ok, r)
             g = idx[good]
             self.n_HS[g], self.d_SC[g], self.phi_HS[g], self.dT_SC[g] = n_HS[good], d_SC[good], phi[good], dT[good]
-        out = dict(r=r, n_HS=n_HS, err=err, eta_HS=eta_HS, pi_HS=pi_HS, why=why)
+        out = dict(r=r, n_HS=n_HS, err=err, eta_HS=eta_HS, pi_HS=pi_HS, why=why, ms=ms)
         if full:
             out.update({k: ms[k] for k in MSide.KEYS})
             out.update(err=err, T_c=T_c, p_c=p_c, h_f_c=h_f_c, h_g_c=h_g_c, m_HS=m, h_SC=h_SC,

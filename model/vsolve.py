@@ -198,22 +198,26 @@ class TcSolver:
         """(T_c, n_HS) at T_m [K] for the positions pos (a task); NaN and an entry in ``raised``
         (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c)."""
         fs, idx = self.fs, self.idx[pos]
-        if ms is None:
-            ms = fs.m_side(idx, T_m)
         lo = np.maximum(self.T_c_lo[pos], T_m + 0.05)
         hi = np.full(len(pos), self.T_c_max)
         n_HS = np.full(len(pos), np.nan)
         sub = Raised(len(pos))
+        have = [ms]                     # the intermediate side: from the first evaluation (all rows)
 
         def F(p, x):
-            mp = take(ms, p)
-            ev = yield Eval(fs, idx[p], T_m[p], x, mp)
+            if have[0] is None:
+                ev = yield Eval(fs, idx[p], T_m[p], x)
+                have[0] = mp = ev["ms"]
+            else:
+                mp = take(have[0], p)
+                ev = yield Eval(fs, idx[p], T_m[p], x, mp)
             sub.put_eval(fs, p, idx[p], ev["err"], T_m[p], x, mp, ev)
             n_HS[p] = ev["n_HS"]
             return ev["r"], ev["err"] == E_OK
 
         x0 = np.minimum(np.maximum(self.T_c_guess[pos], lo + 0.5), hi)
         x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC)
+        ms = have[0]
         sec = np.flatnonzero(kind == 2)
         sub.put(sec, np.ones(len(sec), dtype=np.int8), ["no_convergence"] * len(sec), msg[sec])
         cv = np.flatnonzero(kind != 0)

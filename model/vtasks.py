@@ -23,6 +23,23 @@ class Eval:
         self.fs, self.idx, self.T_m, self.T_c, self.ms, self.full = fs, idx, T_m, T_c, ms, full
 
 
+class MSideReq:
+    """A request: ``fs.m_side(idx, T_m)`` (the intermediate side at T_m [K])."""
+    __slots__ = ("fs", "idx", "T_m")
+
+    def __init__(self, fs, idx, T_m) -> None:
+        self.fs, self.idx, self.T_m = fs, idx, T_m
+
+
+class LSReq:
+    """A request: the LS speed ratio of the rows idx at T_source,out T_so and T_m [K] (the LS side
+    alone; a row may appear several times)."""
+    __slots__ = ("fs", "idx", "T_so", "T_m")
+
+    def __init__(self, fs, idx, T_so, T_m) -> None:
+        self.fs, self.idx, self.T_so, self.T_m = fs, idx, T_so, T_m
+
+
 class Spawn:
     """A request: start ``task`` (a generator) beside the current one, which resumes at once."""
     __slots__ = ("task",)
@@ -55,11 +72,31 @@ def run(*tasks) -> None:
         batch, live[:] = list(live), []
         groups: dict = {}
         for item in batch:
-            groups.setdefault(id(item[1].fs), []).append(item)
-        for items in groups.values():
-            results = _evaluate([req for _, req in items])
+            groups.setdefault((type(item[1]), id(item[1].fs)), []).append(item)
+        for (kind, _), items in groups.items():
+            reqs = [req for _, req in items]
+            results = _evaluate(reqs) if kind is Eval else _m_side(reqs) if kind is MSideReq else _ls(reqs)
             for (gen, _), res in zip(items, results):
                 advance(gen, res)
+
+
+def _cuts(reqs) -> list:
+    ends = np.cumsum([len(r.idx) for r in reqs])
+    return [(e - len(r.idx), e) for r, e in zip(reqs, ends)]
+
+
+def _m_side(reqs: list) -> list:
+    if len(reqs) == 1:
+        return [reqs[0].fs.m_side(reqs[0].idx, reqs[0].T_m)]
+    ms = reqs[0].fs.m_side(np.concatenate([r.idx for r in reqs]), np.concatenate([r.T_m for r in reqs]))
+    return [MSide(ms.a[:, a:b]) for a, b in _cuts(reqs)]
+
+
+def _ls(reqs: list) -> list:
+    fs = reqs[0].fs
+    n = fs.ls_speed_at(np.concatenate([r.idx for r in reqs]), np.concatenate([r.T_so for r in reqs]),
+                       np.concatenate([r.T_m for r in reqs]))
+    return [n[a:b] for a, b in _cuts(reqs)]
 
 
 def _evaluate(reqs: list) -> list:
@@ -76,8 +113,7 @@ def _evaluate(reqs: list) -> list:
     else:
         ms = MSide.concat([r.ms if r.ms is not None else fs.m_side(r.idx, r.T_m) for r in reqs])
     ev = fs.evaluate(idx, T_m, T_c, ms=ms, full=any(r.full for r in reqs))
-    ends = np.cumsum([len(r.idx) for r in reqs])
-    return [_Part(ev, e - len(r.idx), e) for r, e in zip(reqs, ends)]
+    return [_Part(ev, a, b) for a, b in _cuts(reqs)]
 
 
 class _Part:
@@ -87,11 +123,13 @@ class _Part:
     def __init__(self, ev: dict, a: int, b: int) -> None:
         self.ev, self.a, self.b = ev, a, b
 
-    def __getitem__(self, key: str) -> np.ndarray:
+    def __getitem__(self, key: str):
+        if key == "ms":
+            return self.ev["ms"].take(slice(self.a, self.b))
         return self.ev[key][self.a:self.b]
 
     def __contains__(self, key: str) -> bool:
         return key in self.ev
 
     def keys(self):
-        return self.ev.keys()
+        return [k for k in self.ev.keys() if k != "ms"]

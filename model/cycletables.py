@@ -244,54 +244,6 @@ class CycleTables:
         v = np.where(ok[:, None], self._cubic(a, t), np.nan)
         return v[:, 0], v[:, 1], np.exp(v[:, 2])
 
-    def vapour_from_warm(self, key: str, T_sat, target, u0):
-        """``vapour_from`` for arrays without NaN and a warm start u0 in (0, U_MAX) for every row:
-        three Newton steps on the cubic of u0's cell, checked, and once more from the cell they
-        point to; rows still unsettled are solved by ``vapour_from``. Inputs outside the table's
-        T_sat range go the general way too."""
-        q = 0 if key == "h" else 1
-        x = (T_sat - self._vap_x0) * (1.0 / VAP_DT)
-        i = np.minimum(np.maximum(x.astype(np.intp), 0), self._vap_nx - 2)
-        base, tx = i * (self._vap_nu - 1), (x - i)[:, None, None]
-        u = np.minimum(np.maximum(u0, 0.0), U_MAX)
-        out_T = (x < 4.0) | (x > self._vap_nx - 5.0)
-        theta = h = rho = None
-        todo = None
-        for _ in range(2):
-            sel = slice(None) if todo is None else todo
-            uu, tq, bq, tg = u[sel], tx[sel], base[sel], target[sel]
-            y = (uu - self._vap_u0) * (1.0 / self._vap_du)
-            j = np.minimum(np.maximum(y.astype(np.intp), 0), self._vap_nu - 2)
-            g = self._vap[bq + j]
-            a = ((g[:, 0] * tq + g[:, 1]) * tq + g[:, 2]) * tq + g[:, 3]
-            a0, a1, a2, a3 = a[:, 0, q], a[:, 1, q], a[:, 2, q], a[:, 3, q] - tg
-            t = y - j
-            for _ in range(3):
-                step = (((a0 * t + a1) * t + a2) * t + a3) / ((3.0 * a0 * t + 2.0 * a1) * t + a2)
-                t = t - step
-            un = (j + t) * self._vap_du + self._vap_u0
-            v = self._cubic(a, t)
-            ok = (np.abs(step) <= 1e-12) & (t >= 0.0) & (t <= 1.0) & (un > 1e-9) & (un < U_MAX)
-            if todo is None:
-                theta, h, rho = theta_of_u(un), (v[:, 0] if q == 1 else target.copy()), np.exp(v[:, 2])
-                u = np.where(np.isfinite(un), np.minimum(np.maximum(un, 0.0), U_MAX), u)
-                ok &= ~out_T
-                todo = np.flatnonzero(~ok)
-            else:
-                theta[todo] = theta_of_u(un)
-                rho[todo] = np.exp(v[:, 2])
-                if q == 1:
-                    h[todo] = v[:, 0]
-                u[todo] = un
-                todo = todo[~ok]
-            if not len(todo):
-                return theta, h, rho, u
-        th_b, h_b, rho_b, u_b = self.vapour_from(key, T_sat[todo], target[todo], u0[todo])
-        theta[todo], rho[todo], u[todo] = th_b, rho_b, u_b
-        if q == 1:
-            h[todo] = h_b
-        return theta, h, rho, u
-
     def vapour_from(self, key: str, T_sat, target, u0=None, _build: bool = False):
         """The vapour state at p_sat(T_sat) [K] with h [J/kg] (``key`` "h") or s [J/kg/K] (``key``
         "s") equal to target: (theta [K], h, rho, u), u the table coordinate (``u_of_theta``), which

@@ -345,3 +345,91 @@ def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason
     for k, v in extra.items():
         values[k][i] = v
     return res.branch
+
+
+# --------------------------------------------------------------------------------------------------
+# benchmark: python -m model.vcycle [float|flag]
+# --------------------------------------------------------------------------------------------------
+BENCH_COMPARED = ("Q_sink_kW", "W_total_kW", "COP", "p_c_bar", "p_m_bar", "N_LS_rpm", "N_HS_rpm")
+BENCH_SET_POINTS = tuple(np.linspace(6.5, 30.5, 25))    # bar(g): the bounded range p_e..p_c at nominal
+
+
+def bench_rows(n_ops: int) -> pd.DataFrame:
+    """n_ops operating points near the nominal point (an optimizer window's representative rows:
+    8 fixed ones, more drawn with a fixed seed) times BENCH_SET_POINTS."""
+    fixed = [(25, 18, 40, 192, 62), (24, 18, 40, 200, 62), (26, 18, 42, 192, 55), (23, 17.5, 39, 185, 65),
+             (25, 18, 44, 210, 60), (24.5, 17.8, 41, 195, 70), (25.5, 18.2, 40.5, 205, 58), (24.8, 18, 43, 188, 62)]
+    rng = np.random.default_rng(11)
+    more = [(rng.uniform(23, 26), rng.uniform(17.5, 18.5), rng.uniform(39, 44), rng.uniform(185, 215),
+             rng.uniform(55, 70)) for _ in range(max(n_ops - len(fixed), 0))]
+    ops = pd.DataFrame((fixed + more)[:n_ops], columns=list(INPUT_COLUMNS[:5]), dtype=float)
+    df = ops.loc[ops.index.repeat(len(BENCH_SET_POINTS))].reset_index(drop=True)
+    df["p_m_sp"] = np.tile(BENCH_SET_POINTS, len(ops))
+    return df
+
+
+def bench_vcycle(params: PlantParams | None = None, ls_mode: str = "float", ops=(8, 40), repeat: int = 5) -> dict:
+    """CPU time [ms] of solve_many against the scalar loop (model.batch.solve_rows, warm-started as
+    the optimizer calls it) and the reference (model.cycle.solve row by row without a guess), on
+    ``bench_rows(k)`` for each k in ``ops`` (8 -> 200 rows, 40 -> 1000 rows); the largest deviations
+    from the reference. Returns a JSON-able dict."""
+    from .batch import frame_of, solve_rows
+    if params is None:
+        import yaml                                    # as model/bench_analysis.py: a script's default
+        from pathlib import Path
+        with open(Path(__file__).resolve().parent.parent / "config" / "plant.yaml", encoding="utf-8") as fh:
+            params = PlantParams.from_dict(yaml.safe_load(fh))
+    t = time.process_time()
+    get_cycle_tables(params.fluid)
+    out = {"ls_mode": ls_mode, "tables_build_cpu_s": round(time.process_time() - t, 3), "cases": []}
+
+    def cpu(f, k):
+        best, res = math.inf, None
+        for _ in range(k):
+            t0 = time.process_time()
+            res = f()
+            best = min(best, time.process_time() - t0)
+        return best, res
+
+    for k in ops:
+        df = bench_rows(k)
+        solve_many(df.iloc[:5], params, ls_mode=ls_mode)
+        t_v, vr = cpu(lambda: solve_many(df, params, ls_mode=ls_mode), repeat)
+        t_s, _ = cpu(lambda: solve_rows(df, params, ls_mode=ls_mode), 2 if len(df) <= 200 else 1)
+        t0 = time.process_time()
+        ref = frame_of([_reference_row(df.iloc[i], params, ls_mode) for i in range(len(df))], params)
+        t_c = time.process_time() - t0
+        got = vr.frame()
+        both = (got["Q_sink_kW"].notna() & ref["Q_sink_kW"].notna()).to_numpy()
+        dev = {c: float(np.max(np.abs(got[c] - ref[c]).to_numpy()[both] / np.abs(ref[c]).to_numpy()[both]))
+               for c in BENCH_COMPARED} if both.any() else {}
+        out["cases"].append({
+            "rows": len(df), "operating_points": k, "set_points": len(BENCH_SET_POINTS),
+            "vector_cpu_ms": round(t_v * 1e3, 2), "vector_us_per_row": round(t_v * 1e6 / len(df), 1),
+            "scalar_solve_rows_cpu_ms": round(t_s * 1e3, 1), "scalar_cold_cpu_ms": round(t_c * 1e3, 1),
+            "speedup_vs_solve_rows": round(t_s / t_v, 1), "speedup_vs_cold": round(t_c / t_v, 1),
+            "fallback_rows": vr.fallback_rows,
+            "status_mismatch_vs_cold": int((got["status"] != ref["status"]).sum()),
+            "statuses": {s: int(c) for s, c in zip(*np.unique(vr.status, return_counts=True))},
+            "max_rel_deviation_vs_cold": dev,
+            "max_abs_deviation_T_source_out_K": float(np.max(np.abs(got["T_source_out_C"] - ref["T_source_out_C"])
+                                                             .to_numpy()[both])) if both.any() else math.nan,
+            "max_abs_energy_residual": float(np.nanmax(np.abs(got["energy_residual"]))),
+        })
+    out["target"] = {"rows": 200, "vector_cpu_ms": 5.0}
+    return out
+
+
+def _reference_row(row, params: PlantParams, ls_mode: str):
+    try:
+        return "ok", "", solve(inputs_from_row(row, params.ambient_pressure / BAR), params, ls_mode=ls_mode)
+    except InfeasibleOperation as exc:
+        return exc.reason, str(exc), exc.result
+    except ModelError as exc:
+        return exc.reason, str(exc), None
+
+
+if __name__ == "__main__":   # pragma: no cover
+    import json
+    import sys
+    print(json.dumps(bench_vcycle(ls_mode=sys.argv[1] if len(sys.argv) > 1 else "float"), indent=2))

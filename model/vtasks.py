@@ -23,14 +23,6 @@ class Eval:
         self.fs, self.idx, self.T_m, self.T_c, self.ms, self.full = fs, idx, T_m, T_c, ms, full
 
 
-class MSideReq:
-    """A request: ``fs.m_side(idx, T_m)`` (the intermediate side at T_m [K])."""
-    __slots__ = ("fs", "idx", "T_m")
-
-    def __init__(self, fs, idx, T_m) -> None:
-        self.fs, self.idx, self.T_m = fs, idx, T_m
-
-
 class LSReq:
     """A request: the LS speed ratio of the rows idx at T_source,out T_so and T_m [K] (the LS side
     alone; a row may appear several times)."""
@@ -75,7 +67,7 @@ def run(*tasks) -> None:
             groups.setdefault((type(item[1]), id(item[1].fs)), []).append(item)
         for (kind, _), items in groups.items():
             reqs = [req for _, req in items]
-            results = _evaluate(reqs) if kind is Eval else _m_side(reqs) if kind is MSideReq else _ls(reqs)
+            results = _evaluate(reqs) if kind is Eval else _ls(reqs)
             for (gen, _), res in zip(items, results):
                 advance(gen, res)
 
@@ -83,13 +75,6 @@ def run(*tasks) -> None:
 def _cuts(reqs) -> list:
     ends = np.cumsum([len(r.idx) for r in reqs])
     return [(e - len(r.idx), e) for r, e in zip(reqs, ends)]
-
-
-def _m_side(reqs: list) -> list:
-    if len(reqs) == 1:
-        return [reqs[0].fs.m_side(reqs[0].idx, reqs[0].T_m)]
-    ms = reqs[0].fs.m_side(np.concatenate([r.idx for r in reqs]), np.concatenate([r.T_m for r in reqs]))
-    return [MSide(ms.a[:, a:b]) for a, b in _cuts(reqs)]
 
 
 def _ls(reqs: list) -> list:

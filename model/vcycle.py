@@ -5,19 +5,24 @@ answers row by row, for all rows together with numpy arrays: the same physics (`
 evaluates the flowsheet of ``model.cycle._Point``), properties from spline tables of HEOS
 (``model.cycletables``), the compressors through their vectorised protocol (``eta_is_v``,
 ``eta_vol_v``, ``speed_for_flow_v``; ``vectorized`` loops the scalar methods of a compressor class
-that does not provide them), and the scalar solver's path (``model.vsolve``), so that the status of
-every row is the scalar solver's and the solved values agree to ~1e-9.
+that does not provide them), and the scalar solver's path (``model.vsolve``, ``model.vfloat``), so
+that the status of every row is the scalar solver's and solved values agree to ~1e-8 (the floating
+LS: to the scalar's own LS-speed tolerance, ~1e-7).
 
 The reference is ``model.cycle.solve`` without a guess (a cold start), row by row: it is what a row
 gives on its own. ``solve_rows`` warm-starts each row from the previous one, and the scalar solver's
 outcome depends on its start where a trial point fails (see ``model.vsolve``): on a grid of set
-points the two differ in a few per cent of the rows (``solve_rows`` solves some rows at HS bound that
-the cold start fails with ``eta_out_of_range`` during its branch test).
+points 4..24 bar(g) the two differed on 9 % of the rows (``solve_rows`` solves rows at the HS bound
+that the cold start fails with ``eta_out_of_range`` during its branch test at the set point).
 
-Rows the vectorised path cannot settle (outside the tables, the scalar path's nested secants, a
-floating LS whose search is not clean) are solved by ``model.cycle.solve`` (cold) one by one:
-``VResult.fallback_rows`` counts them. Units at the interface are those of ``model.batch`` (degC,
-m3/h, bar(g) in; bar absolute, degC, kW, rpm out); SI inside.
+The solver's phases run as tasks whose flowsheet evaluations are batched (``model.vtasks``): at a
+few hundred rows an evaluation costs its numpy calls, not its rows, so the cost is the number of
+sequential evaluation rounds, which the scalar path of the slowest rows sets (~35-60 rounds).
+
+Rows the vectorised path cannot settle (states outside the tables, a vectorised inner iteration
+that does not converge, a floating LS that settles in no branch) are solved by ``model.cycle.solve``
+(cold) one by one: ``VResult.fallback_rows`` counts them. Units at the interface are those of
+``model.batch`` (degC, m3/h, bar(g) in; bar absolute, degC, kW, rpm out); SI inside.
 """
 from __future__ import annotations
 

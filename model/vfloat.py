@@ -2,8 +2,9 @@
 
 ``model.cycle._solve_ls_float``: a row whose LS speed at the input T_source,out lies outside
 [N_min, N_max] floats: T_source,out moves (up at N_max, down at N_min) until N_LS sits on the violated
-bound; a row that cannot be solved at the input for too much duty (``OVERLOAD``) floats when the
-far end of the range (T_source,in - 0.05 K) solves with N_LS <= N_max, else keeps its failure.
+bound; a row that cannot be solved at the input for too much duty (``OVERLOAD``) floats where the
+cold solve at the far end of the range (T_source,in - 0.05 K) solves with N_LS <= N_max, and keeps
+its failure otherwise (that far-end solve follows the scalar cold path, ``model.vsolve``).
 
 The scalar solver finds the floating point by a secant on T_source,out whose trials are warm-started
 full solves; here the root itself is solved, more directly, for the branch the row has there:
@@ -14,9 +15,15 @@ full solves; here the root itself is solved, more directly, for the branch the r
   Jacobian and Broyden updates on (r, n_HS - bound, n_LS - n_bound); the branch holds where T_m lies
   on the bound's side of the set point.
 
-A row that settles in neither, or outside the scalar search's range, goes to the scalar path. The
-root is solved to 1e-11 in the LS speed ratio, the scalar one to 1e-7: T_source,out differs by the
-scalar's tolerance (~5e-7 K). SI units.
+The scalar search reaches that root unless its trials fail: it counts a trial that cannot be solved
+as lying on the input's side. Its first trial (duty-proportional) lies beyond the root for a convex
+N_LS(T_so); where the condenser cannot work above p_m there (p_m_above_p_c), the search walks away
+from the root and fails the row (``ls_speed_high``/``low`` with the input's point, or the input's
+failure): ``_first_trial`` reproduces that (one evaluation decides it for rows from an "sp" input;
+a trial from an HS-bound point starts with the joint Newton at the bound, which holds at less duty,
+and is not checked). A row that settles in neither, or outside the scalar search's range, goes to
+the scalar path. The root is solved to 1e-11 in the LS speed ratio, the scalar one to 1e-7:
+T_source,out differs by the scalar's tolerance (~5e-7 K). SI units.
 """
 from __future__ import annotations
 

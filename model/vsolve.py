@@ -1,20 +1,26 @@
-"""``model.cycle._solve`` from a cold start (no guess), for many rows at once.
+"""``model.cycle._solve`` from a cold start (no guess), for many rows at once, as tasks
+(``model.vtasks``) whose flowsheet evaluations run batched.
 
 The scalar solver's answer for a row is not only its root: an operating point fails where any trial
 point of its iterations fails (an isentropic efficiency outside (0.05, 1] at a trial condensing
-temperature during the branch test fails the row with ``eta_out_of_range``, although the root
-itself may be fine). To give the same status on every row, this module follows the scalar cold path
-step by step, vectorised: the branch test's secant on T_c at the set point (``_secant`` with its
-finite-difference slope, 10-K step limit and bisection once bracketed, the ``p_c_high`` /
-``p_m_above_p_c`` diagnosis when it fails), then for rows at an HS speed bound the joint Newton on
-(T_m, T_c) with its finite-difference Jacobian and Broyden updates (``_bound_newton``). The trial
-points are the scalar ones to ~1e-9 (the residuals differ by the tables' round-off), so every
-check falls the same way except within ~1e-9 of its limit.
+temperature during the branch test fails the row with ``eta_out_of_range``, although the point
+the HS would settle at may be fine). To give the same status on every row, this module follows the
+scalar cold path step by step, vectorised:
 
-Where the scalar path continues with something not replicated here (the nested secants after the
-joint Newton gives up, evaluation failures of the tables' range or of the vectorised inner
-iterations), the row's code is ``"fallback"``: ``model.vcycle`` solves it with ``model.cycle``.
-SI units: K, Pa, W.
+- the branch test's secant on T_c at the set point (``_secant`` with its finite-difference slope,
+  10-K step limit and bisection once bracketed; ``solve_Tc``'s p_c_high / p_m_above_p_c diagnosis
+  where it fails);
+- for rows at an HS speed bound the joint Newton on (T_m, T_c) with its finite-difference Jacobian
+  and Broyden updates (``_bound_newton``), and where it gives up the nested secants (T_m outer with a
+  finite-difference slope, T_c inner warm-started from the last; the hs_speed_low/high diagnosis);
+- the final ``solve_Tc``, which restarts its secant where the last T_c lies within 0.5 K of its
+  lower limit.
+
+The trial points are the scalar ones to ~1e-9 (the residuals differ by the tables' round-off), so
+every check falls the same way except within ~1e-9 of its limit, and the reason texts are the
+scalar's (a number printed from a trial point may differ in its last digit). An evaluation the
+tables or the vectorised inner iterations cannot settle gives the row the code ``"fallback"``:
+``model.vcycle`` solves it with ``model.cycle``. SI units: K, Pa, W.
 """
 from __future__ import annotations
 

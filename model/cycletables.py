@@ -121,7 +121,8 @@ class CycleTables:
         # isentropic state on (T_sat, ds = s - s_g) and the superheat on (T_sat, dh = h - h_g)
         gs = self._sat_eval(Tv, slice(2, 4))                      # h_g, s_g at the nodes
         w = np.arange(-PAD, DER_NU) / (DER_NU - 1.0)
-        for name, grid, alpha, col, key in (("_isen", DS_GRID, DS_ALPHA, 1, "s"), ("_tofh", DH_GRID, DH_ALPHA, 0, "h")):
+        for name, grid, alpha, col, key in (("_isen", DS_GRID, DS_ALPHA, 1, "s"),
+                                            ("_tofh", DH_GRID, DH_ALPHA, 0, "h")):
             dv = grid * np.expm1(alpha * w) / math.expm1(alpha)
             tgt = (gs[:, col][:, None] + dv[None, :]).ravel()
             th, h, _, _ = self.vapour_from(key, np.repeat(Tv, len(w)), tgt, None, _build=True)

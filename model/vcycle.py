@@ -363,7 +363,8 @@ def bench_rows(n_ops: int) -> pd.DataFrame:
     """n_ops operating points near the nominal point (an optimizer window's representative rows:
     8 fixed ones, more drawn with a fixed seed) times BENCH_SET_POINTS."""
     fixed = [(25, 18, 40, 192, 62), (24, 18, 40, 200, 62), (26, 18, 42, 192, 55), (23, 17.5, 39, 185, 65),
-             (25, 18, 44, 210, 60), (24.5, 17.8, 41, 195, 70), (25.5, 18.2, 40.5, 205, 58), (24.8, 18, 43, 188, 62)]
+             (25, 18, 44, 210, 60), (24.5, 17.8, 41, 195, 70), (25.5, 18.2, 40.5, 205, 58),
+             (24.8, 18, 43, 188, 62)]
     rng = np.random.default_rng(11)
     more = [(rng.uniform(23, 26), rng.uniform(17.5, 18.5), rng.uniform(39, 44), rng.uniform(185, 215),
              rng.uniform(55, 70)) for _ in range(max(n_ops - len(fixed), 0))]

@@ -65,8 +65,9 @@ class FloatLS:
             high, low = n_LS > n_hi, n_LS < n_lo
             rows = np.concatenate([solved[high], solved[low]])
             if len(rows):
-                x0 = np.concatenate([T_in[solved[high]] - (T_in[solved[high]] - T_sp[solved[high]]) * n_hi / n_LS[high],
-                                     T_in[solved[low]] - (T_in[solved[low]] - T_sp[solved[low]]) * n_lo / n_LS[low]])
+                # the scalar search's first trial: the duty in proportion to the speed bound
+                n_b = np.concatenate([np.full(high.sum(), n_hi), np.full(low.sum(), n_lo)])
+                x0 = T_in[rows] - (T_in[rows] - T_sp[rows]) * n_b / np.concatenate([n_LS[high], n_LS[low]])
                 limit_max = np.concatenate([np.ones(high.sum(), bool), np.zeros(low.sum(), bool)])
                 yield Spawn(self._float(rows, x0, limit_max, None))
         # rows that cannot be solved at the input for too much duty: the far end decides

@@ -325,7 +325,8 @@ def test_tables_agree_with_heos():
     assert np.max(np.abs(s_g - ref[:, 3])) < 1e-8
     assert np.max(np.abs(tab.T_sat(ref[:, 0]) - T)) < 1e-9
     T_sat = rng.uniform(200.0, 385.0, 600)
-    theta = np.concatenate([rng.uniform(0.0, 3.0, 200), rng.uniform(0.0, 220.0, 300), rng.uniform(220.0, THETA_MAX, 100)])
+    theta = np.concatenate([rng.uniform(0.0, 3.0, 200), rng.uniform(0.0, 220.0, 300),
+                            rng.uniform(220.0, THETA_MAX, 100)])
     h, s, rho = tab.vapour(T_sat, theta)
     p = tab.p_sat(T_sat)
     ref = np.array([fl.vapour_pT(float(a), float(b + c)) for a, b, c in zip(p, T_sat, theta)])

@@ -174,7 +174,11 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
     as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
     LS saturates at its speed bound and T_source,out floats). ``force_scalar``: a boolean mask of rows
     to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys
-    of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``."""
+    of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``.
+
+    The properties are HEOS's (``model.cycletables``) whatever ``params.backend`` says: with a
+    tabular backend the scalar solver deviates from HEOS by up to ~1e-5, and so from these answers;
+    only the rows that go to the scalar path use the configured backend."""
     if ls_mode not in LS_MODES:
         raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
     with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays

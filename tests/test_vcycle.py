@@ -135,6 +135,8 @@ def check_agreement(params, df: pd.DataFrame, ls_mode: str) -> dict:
     for k in COMPARED:
         rel = np.abs(got[k].to_numpy() - ref[k].to_numpy()) / np.abs(ref[k].to_numpy())
         assert rel[solved].max() <= AGREE_REL, (k, rel[solved].max())
+    for k in ("hs_saturated", "ls_saturated"):
+        assert (got[k].to_numpy()[solved] == ref[k].to_numpy()[solved]).all(), k
     dT = np.abs(got["T_source_out_C"].to_numpy() - ref["T_source_out_C"].to_numpy())[solved]
     assert dT.max() <= T_SO_ABS
     assert np.abs(got["energy_residual"].to_numpy()[solved]).max() <= ENERGY_TOL

@@ -14,7 +14,8 @@ The families here use forms that polynomial cannot represent exactly:
 so the swept flow phi(n) = eta_vol * n = A(pi) * n - c * n^2 is a quadratic in n and the speed
 for a given mass flow has a closed form. ``ShapedCompressor`` is a ``model.params.Compressor`` (same
 swept volume and speed range as plant.yaml's machine) that overrides exactly the three methods
-model/cycle.py calls: ``eta_is_at``, ``eta_vol_at`` and ``speed_for_flow``, with the base class's
+model/cycle.py calls: ``eta_is_at``, ``eta_vol_at`` and ``speed_for_flow`` (and their vectorised
+twins ``eta_is_v``, ``eta_vol_v``, ``speed_for_flow_v`` that model/vcycle.py calls), with the base class's
 contract (linear continuation of phi beyond the speed bounds, ValueError when the flow does not rise
 with speed). Its polynomial coefficient fields hold NaN: a family is not a polynomial, and code that
 reads coefficients instead of calling the methods must fail loudly rather than use wrong numbers.
@@ -111,6 +112,43 @@ class ShapedCompressor(Compressor):
         # smaller root of c n^2 - A n + target = 0, in the cancellation-free form
         n = 2.0 * target / (A + math.sqrt(A * A - 4.0 * c * target))
         return n, A - c * n
+
+    # ------------------------------------------------ the vectorised protocol (model.vcycle) ----
+    def eta_is_v(self, pi, n) -> np.ndarray:
+        """``eta_is_at`` for arrays."""
+        x = np.log(np.asarray(pi, dtype=float) / self.pi_opt) / self.w_ln_pi
+        q = x * x
+        if self.n_opt is not None:
+            y = (np.asarray(n, dtype=float) - self.n_opt) / self.w_n
+            q = q + y * y
+        return self.eta_is_floor + (self.eta_is_max - self.eta_is_floor) * np.exp(-0.5 * q)
+
+    def eta_vol_v(self, pi, n) -> np.ndarray:
+        """``eta_vol_at`` for arrays."""
+        return self._vol_A_v(pi) - self.vol_c * np.asarray(n, dtype=float)
+
+    def _vol_A_v(self, pi) -> np.ndarray:
+        return self.vol_a - self.vol_b * (np.asarray(pi, dtype=float) ** (1.0 / self.vol_k) - 1.0)
+
+    def speed_for_flow_v(self, m, rho_suc, pi, n0=None) -> tuple[np.ndarray, np.ndarray]:
+        """``speed_for_flow`` for arrays: (n, eta_vol), NaN in rows where it raises ValueError."""
+        A, c = self._vol_A_v(pi), self.vol_c
+        target = np.asarray(m, dtype=float) / (np.asarray(rho_suc, dtype=float) * self.swept_volume)
+        A, target = np.broadcast_arrays(A, target)
+        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
+        bad = ~((A - 2.0 * c * n_lo > 0.0) & (A - 2.0 * c * n_hi > 0.0))
+        f_hi = (A - c * n_hi) * n_hi
+        f_lo = (A - c * n_lo) * n_lo
+        above, below = target > f_hi, target < f_lo
+        with np.errstate(divide="ignore", invalid="ignore"):
+            n_out = np.where(above, n_hi + (target - f_hi) / (A - 2.0 * c * n_hi),
+                             n_lo + (target - f_lo) / (A - 2.0 * c * n_lo))
+            bad |= below & ~above & ~(n_out > 0.0)
+            n_in = 2.0 * target / (A + np.sqrt(A * A - 4.0 * c * target))
+            out = above | below
+            n = np.where(out, n_out, n_in)
+            ev = np.where(out, target / n, A - c * n)
+        return np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
 
     def replace(self, **kw) -> "ShapedCompressor":
         return dataclasses.replace(self, **kw)

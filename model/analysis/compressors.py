@@ -586,6 +586,7 @@ class LocalCurves:
     def __getstate__(self):
         d = dict(self.__dict__)
         d.pop("_c", None)       # rebuilt on first use (keeps pickles small)
+        d.pop("_ca", None)
         return d
 
     def _cell(self, pi: float, n: float, left: bool = False):
@@ -618,6 +619,61 @@ class LocalCurves:
         v = [c[0] + c[1] * zp + c[2] * zn + c[3] * pp + c[4] * pn + c[5] * nn
              for c in (r0[j], r1[j], r0[j + 1], r1[j + 1])]
         return ((1 - fy) * ((1 - fx) * v[0] + fx * v[1])) + (fy * ((1 - fx) * v[2] + fx * v[3]))
+
+    # ---- the same for arrays (model.vcycle): (values, inside), the values NaN outside the grid
+    def _cell_v(self, pi, n, left=None):
+        """Arrays (inside, i, j, fx, fy, zp, zn) of ``_cell`` (``left``: a boolean array)."""
+        if not self.ok:
+            pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+            z = np.zeros(pi.shape, dtype=np.intp)
+            self._ca = np.zeros((2, 2, 6))
+            return np.zeros(pi.shape, dtype=bool), z, z, pi * 0.0, pi * 0.0, pi * 0.0, pi * 0.0
+        if "_ca" not in self.__dict__:
+            if "_c" not in self.__dict__:
+                self._fast()
+            self._ca = np.asarray(self._c, dtype=float)
+        pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        fin = np.isfinite(pi) & np.isfinite(n)
+        x = (np.where(fin, pi, self.p0) - self.p0) / self.dpi
+        y = (np.where(fin, n, self.n0) - self.n0) / self.dn
+        i, j = np.floor(x), np.floor(y)
+        fy = y - j
+        if left is not None:
+            shift = left & (fy == 0.0) & (j > 0)
+            j, fy = np.where(shift, j - 1, j), np.where(shift, 1.0, fy)
+        inside = fin & (i >= 0) & (i < self._ni) & (j >= 0) & (j < self._nj) & self.ok
+        ii = np.where(inside, i, 0).astype(np.intp)
+        jj = np.where(inside, j, 0).astype(np.intp)
+        return inside, ii, jj, x - i, fy, (pi - _Z[0]) / _Z[1], (n - _Z[2]) / _Z[3]
+
+    def _corners_v(self, ii, jj, zp, zn, deriv: bool):
+        c = self._ca
+        pp, pn, nn = zp * zp, zp * zn, zn * zn
+        out = []
+        for di, dj in ((0, 0), (1, 0), (0, 1), (1, 1)):
+            k = c[ii + di, jj + dj]
+            v = k[:, 0] + k[:, 1] * zp + k[:, 2] * zn + k[:, 3] * pp + k[:, 4] * pn + k[:, 5] * nn
+            out.append((v, k[:, 2] + k[:, 4] * zp + 2.0 * k[:, 5] * zn) if deriv else v)
+        return out
+
+    def value_v(self, pi, n) -> tuple[np.ndarray, np.ndarray]:
+        """``value`` for arrays: (values, inside); NaN where ``value`` is None."""
+        inside, ii, jj, fx, fy, zp, zn = self._cell_v(pi, n)
+        v = self._corners_v(ii, jj, zp, zn, False)
+        val = ((1 - fy) * ((1 - fx) * v[0] + fx * v[1])) + (fy * ((1 - fx) * v[2] + fx * v[3]))
+        return np.where(inside, val, np.nan), inside
+
+    def value_dn_v(self, pi, n, left=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``value_dn`` for arrays (``left`` a boolean array): (values, d/dn, inside)."""
+        inside, ii, jj, fx, fy, zp, zn = self._cell_v(pi, n, left)
+        (v0, d0), (v1, d1), (v2, d2), (v3, d3) = self._corners_v(ii, jj, zp, zn, True)
+        lo = (1 - fx) * v0 + fx * v1
+        hi = (1 - fx) * v2 + fx * v3
+        val = (1 - fy) * lo + fy * hi
+        d = (hi - lo) / self.dn + ((1 - fy) * ((1 - fx) * d0 + fx * d1)
+                                   + fy * ((1 - fx) * d2 + fx * d3)) / _Z[3]
+        nan = np.nan
+        return np.where(inside, val, nan), np.where(inside, d, nan), inside
 
     def value_dn(self, pi: float, n: float, left: bool = False) -> tuple[float, float] | None:
         """(value, d value / d n) at (pi, n) (the derivative of the bilinear blend, exact within a
@@ -675,6 +731,81 @@ class LearnedCompressor(Compressor):
             v = v + _zvalue(a, pi, n)
             d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
         return v, d
+
+    # ---- the vectorised protocol (model.vcycle): the same numbers as the scalar methods
+    def eta_is_v(self, pi, n) -> np.ndarray:
+        """``eta_is_at`` for arrays."""
+        return self._curve_v(self.local_is, Compressor.eta_is_v(self, pi, n), self.delta_is, pi, n)
+
+    def eta_vol_v(self, pi, n) -> np.ndarray:
+        """``eta_vol_at`` for arrays."""
+        return self._curve_v(self.local_vol, Compressor.eta_vol_v(self, pi, n), self.delta_vol, pi, n)
+
+    @staticmethod
+    def _curve_v(local, glob, delta, pi, n) -> np.ndarray:
+        v = np.asarray(glob, dtype=float)
+        if local is not None:
+            loc, inside = local.value_v(pi, n)
+            v = np.where(inside, loc, v)
+        return v + _zvalue(delta, pi, n) if delta is not None else v
+
+    def _vol_dn_v(self, pi, n, left) -> tuple[np.ndarray, np.ndarray]:
+        """``_vol_dn`` for arrays (``left`` a boolean array)."""
+        v, d, inside = self.local_vol.value_dn_v(pi, n, left)
+        c = self.eta_vol
+        v = np.where(inside, v, Compressor.eta_vol_v(self, pi, n))
+        d = np.where(inside, d, c[2] + c[4] * pi + 2.0 * c[5] * n)
+        a = self.delta_vol
+        if a is not None:
+            zp = (pi - _Z[0]) / _Z[1]
+            zn = (n - _Z[2]) / _Z[3]
+            v = v + _zvalue(a, pi, n)
+            d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
+        return v, d
+
+    def speed_for_flow_v(self, m, rho_suc, pi, n0=None) -> tuple[np.ndarray, np.ndarray]:
+        """``speed_for_flow`` for arrays (the contract of ``Compressor.speed_for_flow_v``: NaN in
+        rows where the scalar method raises ValueError)."""
+        if self.local_vol is None or not self.local_vol.ok:
+            return Compressor.speed_for_flow_v(self, m, rho_suc, pi, n0)
+        m, rho_suc, pi = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (m, rho_suc, pi)))
+        target = m / (rho_suc * self.swept_volume)
+        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
+
+        def phi(p, nn):
+            v, d = self._vol_dn_v(p, nn, nn >= n_hi)
+            return v * nn, v + nn * d
+
+        f_lo, d_lo = phi(pi, np.full_like(target, n_lo))
+        f_hi, d_hi = phi(pi, np.full_like(target, n_hi))
+        bad = ~((d_lo > 0.0) & (d_hi > 0.0))
+        above, below = target > f_hi, target < f_lo
+        with np.errstate(divide="ignore", invalid="ignore"):
+            n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
+            bad |= below & ~above & ~(n_out > 0.0)
+        n = np.clip(np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float), n_lo, n_hi)
+        n = np.where(np.isfinite(n), n, 1.0)
+        a, b = np.full_like(target, n_lo), np.full_like(target, n_hi)
+        act = np.flatnonzero(~(above | below | bad))
+        for _ in range(60):
+            if not len(act):
+                break
+            na = n[act]
+            f, df = phi(pi[act], na)
+            hi = f > target[act]
+            b[act] = np.where(hi, na, b[act])
+            a[act] = np.where(hi, a[act], na)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(df > 0, (f - target[act]) / df, 0.0)
+            nn = na - step
+            aa, bb = a[act], b[act]
+            nn = np.where((aa <= nn) & (nn <= bb), nn, 0.5 * (aa + bb))
+            n[act] = nn
+            act = act[~(np.abs(nn - na) < 1e-13)]
+        n = np.where(above | below, n_out, n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ev = target / n
+        return np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
 
     def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
         """As Compressor.speed_for_flow (same contract), by safeguarded Newton with the analytic

@@ -1,0 +1,445 @@
+"""Many operating points at once: ``model.cycle.solve`` vectorised over the rows of a frame.
+
+``solve_many(rows, params, p_m_sp=None, ls_mode="flag")`` answers what ``model.batch.solve_rows``
+answers row by row, for all rows together with numpy arrays: the same physics (``model.vflowsheet``
+evaluates the flowsheet of ``model.cycle._Point``), properties from spline tables of HEOS
+(``model.cycletables``), the compressors through their vectorised protocol (``eta_is_v``,
+``eta_vol_v``, ``speed_for_flow_v``; ``vectorized`` loops the scalar methods of a compressor class
+that does not provide them), and the scalar solver's path (``model.vsolve``, ``model.vfloat``), so
+that the status of every row is the scalar solver's and solved values agree to ~1e-8 (the floating
+LS: to the scalar's own LS-speed tolerance, ~1e-7).
+
+The reference is ``model.cycle.solve`` without a guess (a cold start), row by row: it is what a row
+gives on its own. ``solve_rows`` warm-starts each row from the previous one, and the scalar solver's
+outcome depends on its start where a trial point fails (see ``model.vsolve``): on a grid of set
+points 4..24 bar(g) the two differed on 9 % of the rows (``solve_rows`` solves rows at the HS bound
+that the cold start fails with ``eta_out_of_range`` during its branch test at the set point).
+
+The solver's phases run as tasks whose flowsheet evaluations are batched (``model.vtasks``): at a
+few hundred rows an evaluation costs its numpy calls, not its rows, so the cost is the number of
+sequential evaluation rounds, which the scalar path of the slowest rows sets (~35-60 rounds).
+
+Rows the vectorised path cannot settle (states outside the tables, a vectorised inner iteration
+that does not converge, a floating LS that settles in no branch) are solved by ``model.cycle.solve``
+(cold) one by one: ``VResult.fallback_rows`` counts them. Units at the interface are those of
+``model.batch`` (degC, m3/h, bar(g) in; bar absolute, degC, kW, rpm out); SI inside.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from .batch import INPUT_COLUMNS, OUTPUT_KEYS, inputs_from_row, result_row
+from .cycle import LS_MODES, LS_SPEED_LOOSE, InfeasibleOperation, ModelError, solve
+from .cycletables import get_cycle_tables
+from .fluid import get_fluid
+from .params import Compressor, PlantParams
+from .units import BAR, C_to_K, K_to_C, Pa_to_barg, barg_to_Pa, m3h_to_m3s
+from .vflowsheet import Flowsheet
+from .vfloat import FloatLS
+from .vtasks import run
+from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
+
+SOLVED_FLAGS = ("ls_speed_high", "ls_speed_low", "negative_pinch")
+# beyond model.batch.OUTPUT_KEYS: the subcooler's states (its outlet on the equation of state)
+EXTRA_KEYS = ("Q_SC_kW", "T_SC_C", "h_SC_J_kg", "h_con_out_J_kg", "T_w_SC_out_C")
+_PROTOCOL = (("eta_is_at", "eta_is_v"), ("eta_vol_at", "eta_vol_v"), ("speed_for_flow", "speed_for_flow_v"))
+
+
+# --------------------------------------------------------------------------------------------------
+# the compressor protocol
+# --------------------------------------------------------------------------------------------------
+def _owner(cls, name: str):
+    for k in cls.__mro__:
+        if name in k.__dict__:
+            return k
+    return None
+
+
+class _Looped:
+    """The vectorised protocol for a compressor that has only the scalar methods: loops them."""
+
+    def __init__(self, comp: Compressor) -> None:
+        self.comp = comp
+
+    def eta_is_v(self, pi, n) -> np.ndarray:
+        pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        return np.array([self.comp.eta_is_at(a, b) for a, b in zip(pi.tolist(), n.tolist())])
+
+    def eta_vol_v(self, pi, n) -> np.ndarray:
+        pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        return np.array([self.comp.eta_vol_at(a, b) for a, b in zip(pi.tolist(), n.tolist())])
+
+    def speed_for_flow_v(self, m, rho_suc, pi, n0=None):
+        m, rho_suc, pi = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (m, rho_suc, pi)))
+        n0 = np.ones(m.shape) if n0 is None else np.broadcast_to(np.asarray(n0, dtype=float), m.shape)
+        out = np.full((len(m), 2), np.nan)
+        for k, (a, b, c, d) in enumerate(zip(m.tolist(), rho_suc.tolist(), pi.tolist(), n0.tolist())):
+            if not all(map(math.isfinite, (a, b, c))):
+                continue
+            try:
+                out[k] = self.comp.speed_for_flow(a, b, c, d if math.isfinite(d) else 1.0)
+            except (ValueError, ZeroDivisionError):
+                pass
+        return out[:, 0], out[:, 1]
+
+
+def vectorized(comp: Compressor):
+    """``comp`` itself when its class provides the vectorised protocol for every scalar method it
+    defines (the vectorised method is defined in the same class as the scalar one, or below it);
+    otherwise an adapter that loops the scalar methods (a subclass that overrides ``eta_is_at`` but
+    inherits ``Compressor.eta_is_v`` would get the base class's polynomial: never used)."""
+    cls = type(comp)
+    for scalar, vec in _PROTOCOL:
+        o_v, o_s = _owner(cls, vec), _owner(cls, scalar)
+        if o_v is None or not issubclass(o_v, o_s):
+            return _Looped(comp)
+    return comp
+
+
+# --------------------------------------------------------------------------------------------------
+# the result
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class VResult:
+    """Outputs of ``solve_many``: ``values[key]`` (or ``result.key``) for every key of
+    ``model.batch.OUTPUT_KEYS`` (bar absolute, degC, kW, rpm; booleans for hs_saturated,
+    ls_saturated; NaN where a row has no solution), ``status`` and ``reason`` per row (the codes of
+    ``model.batch.solve_rows``), ``branch`` ("sp", "hs_max", "hs_min", "" unsolved), ``fallback``
+    (rows solved by the scalar path) and their count ``fallback_rows``."""
+    values: dict
+    status: np.ndarray
+    reason: np.ndarray
+    branch: np.ndarray
+    fallback: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def fallback_rows(self) -> int:
+        return int(self.fallback.sum())
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.values[key]
+
+    def __getattr__(self, key: str):
+        values = self.__dict__.get("values")
+        if values is not None and key in values:
+            return values[key]
+        raise AttributeError(key)
+
+    def solved(self) -> np.ndarray:
+        """Rows with outputs: 'ok' and the flagged statuses."""
+        return np.isin(self.status, ("ok",) + SOLVED_FLAGS)
+
+    def frame(self, columns: tuple[str, ...] = OUTPUT_KEYS, index=None) -> pd.DataFrame:
+        """The frame of ``model.batch.frame_of``: ``columns`` (floats, NaN where unsolved; the
+        booleans as 1.0/0.0) plus status and reason."""
+        n = len(self.status)
+        solved = self.solved()
+        out = {}
+        for k in columns:
+            v = np.asarray(self.values[k], dtype=float)
+            out[k] = np.where(solved, v, np.nan)
+        frame = pd.DataFrame(out, index=index if index is not None else pd.RangeIndex(n))
+        frame["status"] = np.asarray(self.status, dtype=object)
+        frame["reason"] = np.asarray(self.reason, dtype=object)
+        return frame
+
+
+# --------------------------------------------------------------------------------------------------
+# solve
+# --------------------------------------------------------------------------------------------------
+def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
+    missing = [c for c in INPUT_COLUMNS if c not in rows.columns and not (c == "p_m_sp" and p_m_sp is not None)]
+    if missing:
+        raise KeyError(f"input columns missing: {', '.join(missing)}")
+    n = len(rows)
+    cols = {c: np.asarray(rows[c], dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
+    if p_m_sp is not None:
+        cols["p_m_sp"] = np.broadcast_to(np.asarray(p_m_sp, dtype=float), (n,)).copy()
+    return cols
+
+
+def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
+               force_scalar=None) -> VResult:
+    """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
+    m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
+    as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
+    LS saturates at its speed bound and T_source,out floats). ``force_scalar``: a boolean mask of rows
+    to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys
+    of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``.
+
+    The properties are HEOS's (``model.cycletables``) whatever ``params.backend`` says: with a
+    tabular backend the scalar solver deviates from HEOS by up to ~1e-5, and so from these answers;
+    only the rows that go to the scalar path use the configured backend."""
+    if ls_mode not in LS_MODES:
+        raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
+    with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays
+        return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar)
+
+
+def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
+    t0 = time.process_time()
+    amb_bar = params.ambient_pressure / BAR
+    cols = _inputs(rows, p_m_sp, amb_bar)
+    n = len(rows)
+    fluid = get_fluid(params.fluid, params.backend)
+    tab = get_cycle_tables(params.fluid)
+    status = np.full(n, "", dtype=object)
+    reason = np.full(n, "", dtype=object)
+    fallback = np.zeros(n, dtype=bool)
+    # ---- inputs (SI) and the checks the scalar solver makes before iterating
+    fin = np.all([np.isfinite(cols[c]) for c in INPUT_COLUMNS], axis=0) if n else np.zeros(0, bool)
+    for i in np.flatnonzero(~fin):
+        bad = [c for c in INPUT_COLUMNS if not math.isfinite(cols[c][i])]
+        status[i], reason[i] = "bad_input", f"missing or non-finite: {', '.join(bad)}"
+    z = lambda a: np.where(fin, a, 1.0)   # noqa: E731  (placeholders in rows already decided)
+    T_si, T_so = C_to_K(z(cols["T_source_in"])), C_to_K(np.where(fin, cols["T_source_out"], 0.0))
+    T_ki = C_to_K(z(cols["T_sink_in"]))
+    V_s, V_k = m3h_to_m3s(z(cols["V_source"])), m3h_to_m3s(z(cols["V_sink"]))
+    p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
+    fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k)
+    _precheck(fs, fluid, p_sp, status, reason, fallback)
+    if force_scalar is not None:
+        fallback |= (status == "") & np.asarray(force_scalar, dtype=bool)
+    T_m_sp = tab.T_sat(p_sp)
+    fallback |= (status == "") & ~np.isfinite(T_m_sp)
+    T_c_max = fluid.sat_p(min(params.p_c_max, fluid.p_crit * 0.98)).T
+    todo = np.flatnonzero((status == "") & ~fallback)
+    out = Outcome(n)
+    ls_limit = np.full(n, "", dtype=object)
+    if len(todo):
+        # the cold path of every row; in "float" mode a row floats as soon as its outcome at the
+        # input is final, beside the rows still being solved (model.vtasks)
+        on_done = FloatLS(fs, T_m_sp, p_sp, T_c_max, out, ls_limit).task if ls_mode == "float" else None
+        run(solve_cold(fs, todo, T_m_sp, p_sp, T_c_max, out, on_done))
+    t1 = t2 = time.process_time()
+    for i in todo:
+        if out.code[i] == FALLBACK:
+            fallback[i] = True
+        elif out.code[i]:
+            status[i], reason[i] = out.code[i], out.msg[i]
+    solved = np.flatnonzero((status == "") & ~fallback)
+    values = _empty_values(n)
+    if len(solved):
+        _assemble(fs, solved, out, ls_limit, values, status, reason, fallback, amb_bar)
+    t3 = time.process_time()
+    branch = np.array(["", "sp", "hs_max", "hs_min"], dtype=object)[np.where(
+        (status == "") & ~fallback, out.branch + 1, 0)]
+    for i in np.flatnonzero(fallback):
+        branch[i] = _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason)
+    status[(status == "")] = "ok"
+    timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3}
+    return VResult(values, status, reason, branch, fallback, timings)
+
+
+def _precheck(fs: Flowsheet, fluid, p_sp, status, reason, fallback) -> None:
+    """The checks of ``_Point`` and ``_solve`` before any iteration, in their order."""
+    for i in np.flatnonzero(status == ""):
+        C, dT = fs.C_s[i], fs.T_si[i] - fs.T_so[i]
+        if not (C > 0.0 and dT > 0.0):
+            status[i] = "bad_source"
+            reason[i] = (f"source must be cooled with positive flow (V_source={fs.V_s[i]:.4g} m3/s, "
+                         f"T_in-T_out={dT:.4g} K)")
+        elif not fs.T_e[i] > fluid.T_triple + 1.0:
+            if math.isfinite(fs.T_e[i]):
+                status[i] = "T_e_low"
+                reason[i] = (f"evaporating temperature {K_to_C(fs.T_e[i]):.2f} degC is below the "
+                             "fluid's range")
+            else:
+                fallback[i] = True
+        elif not fs.src_ok[i]:
+            fallback[i] = True                # outside the tables (or above the critical point)
+        elif not fs.C_w[i] > 0.0:
+            status[i] = "bad_sink"
+            reason[i] = f"sink flow must be positive (V_sink={fs.V_k[i]:.4g} m3/s)"
+        elif p_sp[i] >= fluid.p_crit:
+            status[i], reason[i] = "p_m_sp_high", "p_m set point above the critical pressure"
+
+
+def _empty_values(n: int) -> dict:
+    values = {k: np.full(n, np.nan) for k in OUTPUT_KEYS + EXTRA_KEYS}
+    values["hs_saturated"] = np.zeros(n, dtype=bool)
+    values["ls_saturated"] = np.zeros(n, dtype=bool)
+    return values
+
+
+def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reason, fallback, amb_bar) -> None:
+    """Every output of ``CycleResult.to_dict`` at the solved (T_m, T_c) of the rows, and the limit
+    checks of ``model.cycle._check_limits``."""
+    par, tab = fs.par, fs.tab
+    ls_c, hs_c = par.comp_LS, par.comp_HS
+    T_m, T_c = out.T_m[rows], out.T_c[rows]
+    s = fs.evaluate(rows, T_m, T_c, full=True)
+    bad = s["err"] != 0
+    th2 = tab.theta_from_h(T_m, s["h2"], s["h_g_m"])
+    bad |= ~np.isfinite(th2)
+    fallback[rows[bad]] = True                # not expected: the path solved these points
+    m_LS, m_HS = s["m_LS"], s["m_HS"]
+    h1, h2, h4, h_g_m = fs.h1[rows], s["h2"], s["h4"], s["h_g_m"]
+    W_LS = m_LS * (h2 - h1) * ls_c.drive_factor
+    W_HS = m_HS * (h4 - h_g_m) * hs_c.drive_factor
+    Q_source = fs.Q_s[rows]
+    Q_sink = s["Q_SC"] + s["Q_con"] + s["Q_DSH"]
+    C_w = fs.C_w[rows]
+    T_sink_out = s["T_w2"] + s["Q_DSH"] / C_w
+    T_SC_out, T4 = s["T_SC"], s["T4"]
+    T_DSH_out = T4 - s["Q_DSH"] / (m_HS * s["cp_v"])
+    T_ki = fs.T_ki[rows]
+    pinch = np.minimum.reduce([T_SC_out - T_ki, T_c - s["T_w1"], T_c - s["T_w2"],
+                               T_DSH_out - s["T_w2"], T4 - T_sink_out])
+    W_shaft = m_LS * (h2 - h1) + m_HS * (h4 - h_g_m)
+    N_LS, N_HS = s["n_LS"] * ls_c.N_nom, s["n_HS"] * hs_c.N_nom
+    W_total = W_LS + W_HS
+    v = {
+        "p_e_bar": fs.p_e[rows] / BAR, "p_m_bar": s["p_m"] / BAR, "p_c_bar": s["p_c"] / BAR,
+        "p_m_barg": Pa_to_barg(s["p_m"], amb_bar), "T_e_C": K_to_C(fs.T_e[rows]), "T_m_C": K_to_C(T_m),
+        "T_c_C": K_to_C(T_c), "N_LS_rpm": N_LS, "N_HS_rpm": N_HS, "Q_sink_kW": Q_sink / 1e3,
+        "Q_source_kW": Q_source / 1e3, "W_LS_kW": W_LS / 1e3, "W_HS_kW": W_HS / 1e3,
+        "W_total_kW": W_total / 1e3, "COP": Q_sink / W_total, "T_sink_out_C": K_to_C(T_sink_out),
+        "eta_is_LS": s["eta_LS"], "eta_is_HS": s["eta_HS"], "eta_vol_LS": s["ev_LS"],
+        "eta_vol_HS": s["ev_HS"], "m_LS_kg_s": m_LS, "m_HS_kg_s": m_HS, "subcooling_K": T_c - T_SC_out,
+        "pinch_K": pinch, "dp_source_bar": par.CF_dp_f * par.dp_clean(fs.V_s[rows]) / BAR,
+        "T_dis_LS_C": K_to_C(T_m + th2), "T_dis_HS_C": K_to_C(T4),
+        "energy_residual": (Q_source + W_shaft - Q_sink) / Q_sink,
+        "hs_saturated": out.branch[rows] == HS_MAX, "T_source_out_C": K_to_C(fs.T_so[rows]),
+        "ls_saturated": ls_limit[rows] != "",
+        "Q_SC_kW": s["Q_SC"] / 1e3, "T_SC_C": K_to_C(T_SC_out), "h_SC_J_kg": s["h_SC"],
+        "h_con_out_J_kg": s["h_f_c"], "T_w_SC_out_C": K_to_C(s["T_w1"]),
+    }
+    keep = ~bad
+    for k, a in v.items():
+        values[k][rows[keep]] = a[keep]
+    tol = LS_SPEED_LOOSE * ls_c.N_nom
+    for j in np.flatnonzero(keep):
+        i = rows[j]
+        if out.flag[i]:
+            status[i], reason[i] = out.flag[i], out.flag_msg[i]
+        elif N_LS[j] > ls_c.N_max + tol:
+            status[i] = "ls_speed_high"
+            reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm above its maximum {ls_c.N_max:.0f} rpm"
+        elif N_LS[j] < ls_c.N_min - tol:
+            status[i] = "ls_speed_low"
+            reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm below its minimum {ls_c.N_min:.0f} rpm"
+        elif pinch[j] < 0.0:
+            status[i], reason[i] = "negative_pinch", f"negative pinch {pinch[j]:.3f} K in the condenser unit"
+
+
+def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason) -> str:
+    """Row i by ``model.cycle.solve`` without a guess (the reference), into the outputs; returns
+    the branch of its solution ("" where none)."""
+    vals = {c: cols[c][i] for c in INPUT_COLUMNS}
+    try:
+        res = solve(inputs_from_row(vals, amb_bar), params, fluid=fluid, ls_mode=ls_mode)
+        st, why = "ok", ""
+    except InfeasibleOperation as exc:
+        st, why, res = exc.reason, str(exc), exc.result
+    except ModelError as exc:
+        st, why, res = exc.reason, str(exc), None
+    status[i], reason[i] = ("" if st == "ok" else st), why
+    if res is None:
+        return ""
+    for k, v in result_row(res, params.ambient_pressure).items():
+        values[k][i] = v
+    sc = res.states["SC_out"]
+    extra = {"Q_SC_kW": res.Q_SC / 1e3, "T_SC_C": K_to_C(sc.T), "h_SC_J_kg": sc.h,
+             "h_con_out_J_kg": res.states["con_out"].h, "T_w_SC_out_C": K_to_C(res.T_w_SC_out)}
+    for k, v in extra.items():
+        values[k][i] = v
+    return res.branch
+
+
+# --------------------------------------------------------------------------------------------------
+# benchmark: python -m model.vcycle [float|flag]
+# --------------------------------------------------------------------------------------------------
+BENCH_COMPARED = ("Q_sink_kW", "W_total_kW", "COP", "p_c_bar", "p_m_bar", "N_LS_rpm", "N_HS_rpm")
+BENCH_SET_POINTS = tuple(np.linspace(6.5, 30.5, 25))    # bar(g): the bounded range p_e..p_c at nominal
+
+
+def bench_rows(n_ops: int) -> pd.DataFrame:
+    """n_ops operating points near the nominal point (an optimizer window's representative rows:
+    8 fixed ones, more drawn with a fixed seed) times BENCH_SET_POINTS."""
+    fixed = [(25, 18, 40, 192, 62), (24, 18, 40, 200, 62), (26, 18, 42, 192, 55), (23, 17.5, 39, 185, 65),
+             (25, 18, 44, 210, 60), (24.5, 17.8, 41, 195, 70), (25.5, 18.2, 40.5, 205, 58),
+             (24.8, 18, 43, 188, 62)]
+    rng = np.random.default_rng(11)
+    more = [(rng.uniform(23, 26), rng.uniform(17.5, 18.5), rng.uniform(39, 44), rng.uniform(185, 215),
+             rng.uniform(55, 70)) for _ in range(max(n_ops - len(fixed), 0))]
+    ops = pd.DataFrame((fixed + more)[:n_ops], columns=list(INPUT_COLUMNS[:5]), dtype=float)
+    df = ops.loc[ops.index.repeat(len(BENCH_SET_POINTS))].reset_index(drop=True)
+    df["p_m_sp"] = np.tile(BENCH_SET_POINTS, len(ops))
+    return df
+
+
+def bench_vcycle(params: PlantParams | None = None, ls_mode: str = "float", ops=(8, 40), repeat: int = 5) -> dict:
+    """CPU time [ms] of solve_many against the scalar loop (model.batch.solve_rows, warm-started as
+    the optimizer calls it) and the reference (model.cycle.solve row by row without a guess), on
+    ``bench_rows(k)`` for each k in ``ops`` (8 -> 200 rows, 40 -> 1000 rows); the largest deviations
+    from the reference. Returns a JSON-able dict."""
+    from .batch import frame_of, solve_rows
+    if params is None:
+        import yaml                                    # as model/bench_analysis.py: a script's default
+        from pathlib import Path
+        with open(Path(__file__).resolve().parent.parent / "config" / "plant.yaml", encoding="utf-8") as fh:
+            params = PlantParams.from_dict(yaml.safe_load(fh))
+    t = time.process_time()
+    get_cycle_tables(params.fluid)
+    out = {"ls_mode": ls_mode, "tables_build_cpu_s": round(time.process_time() - t, 3), "cases": []}
+
+    def cpu(f, k):
+        best, res = math.inf, None
+        for _ in range(k):
+            t0 = time.process_time()
+            res = f()
+            best = min(best, time.process_time() - t0)
+        return best, res
+
+    for k in ops:
+        df = bench_rows(k)
+        solve_many(df.iloc[:5], params, ls_mode=ls_mode)
+        t_v, vr = cpu(lambda: solve_many(df, params, ls_mode=ls_mode), repeat)
+        t_s, _ = cpu(lambda: solve_rows(df, params, ls_mode=ls_mode), 2 if len(df) <= 200 else 1)
+        t0 = time.process_time()
+        ref = frame_of([_reference_row(df.iloc[i], params, ls_mode) for i in range(len(df))], params)
+        t_c = time.process_time() - t0
+        got = vr.frame()
+        both = (got["Q_sink_kW"].notna() & ref["Q_sink_kW"].notna()).to_numpy()
+        dev = {c: float(np.max(np.abs(got[c] - ref[c]).to_numpy()[both] / np.abs(ref[c]).to_numpy()[both]))
+               for c in BENCH_COMPARED} if both.any() else {}
+        out["cases"].append({
+            "rows": len(df), "operating_points": k, "set_points": len(BENCH_SET_POINTS),
+            "vector_cpu_ms": round(t_v * 1e3, 2), "vector_us_per_row": round(t_v * 1e6 / len(df), 1),
+            "scalar_solve_rows_cpu_ms": round(t_s * 1e3, 1), "scalar_cold_cpu_ms": round(t_c * 1e3, 1),
+            "speedup_vs_solve_rows": round(t_s / t_v, 1), "speedup_vs_cold": round(t_c / t_v, 1),
+            "fallback_rows": vr.fallback_rows,
+            "status_mismatch_vs_cold": int((got["status"] != ref["status"]).sum()),
+            "statuses": {s: int(c) for s, c in zip(*np.unique(vr.status, return_counts=True))},
+            "max_rel_deviation_vs_cold": dev,
+            "max_abs_deviation_T_source_out_K": float(np.max(np.abs(got["T_source_out_C"] - ref["T_source_out_C"])
+                                                             .to_numpy()[both])) if both.any() else math.nan,
+            "max_abs_energy_residual": float(np.nanmax(np.abs(got["energy_residual"]))),
+        })
+    out["target"] = {"rows": 200, "vector_cpu_ms": 5.0}
+    return out
+
+
+def _reference_row(row, params: PlantParams, ls_mode: str):
+    try:
+        return "ok", "", solve(inputs_from_row(row, params.ambient_pressure / BAR), params, ls_mode=ls_mode)
+    except InfeasibleOperation as exc:
+        return exc.reason, str(exc), exc.result
+    except ModelError as exc:
+        return exc.reason, str(exc), None
+
+
+if __name__ == "__main__":   # pragma: no cover
+    import json
+    import sys
+    print(json.dumps(bench_vcycle(ls_mode=sys.argv[1] if len(sys.argv) > 1 else "float"), indent=2))

@@ -1,0 +1,355 @@
+"""model.vcycle (the flowsheet solved for many rows at once) against the scalar solver row by row.
+
+The reference is ``model.cycle.solve`` without a guess, one row at a time (HEOS through model.fluid):
+what a row gives on its own. (``solve_rows`` warm-starts each row from the previous one, and the
+scalar solver's outcome depends on its start where a trial point fails: see model/vcycle.py.)
+
+Status rule: every row has the scalar status, except a row solved by both whose status differs only
+because a limit-deciding quantity lies within NEAR_LIMIT of its threshold (N_LS against the LS speed
+bounds widened by LS_SPEED_LOOSE, the pinch against 0 K); such rows must stay below 0.5 % of the grid.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import re
+
+import CoolProp.CoolProp as CP
+import numpy as np
+import pandas as pd
+import pytest
+
+from model.analysis.compressors import OBS_COLUMNS, CompressorLearner
+from model.batch import OUTPUT_KEYS, frame_of, inputs_from_row, simulate_batch
+from model.components import counterflow_eps
+from model.cycle import LS_SPEED_LOOSE, InfeasibleOperation, ModelError, solve
+from model.cycletables import THETA_MAX, get_cycle_tables
+from model.fluid import Fluid
+from model.params import Compressor
+from model.units import BAR, C_to_K
+from model.vcycle import _Looped, solve_many, vectorized
+
+AGREE_REL = 1e-6          # Q_sink, W_total, COP, p_c, p_m, N_LS, N_HS: relative
+T_SO_ABS = 1e-6           # K, the (floating) source outlet temperature
+ENERGY_TOL = 1e-6         # |Q_sink - Q_source - W_shaft| / Q_sink in every solved row
+EOS_TOL = 1e-6            # SC outlet enthalpy against the EOS at (p_c, T_SC), relative
+COMP_REL = 1e-12          # vectorised compressor methods against the scalar ones
+NEAR_LIMIT = 1e-6         # status exemption distance (relative to N_nom; K for the pinch)
+AMB = 1.01325
+SET_POINTS = np.arange(4.0, 24.01, 1.0)
+NOMINAL = {"T_source_in": 25.0, "T_source_out": 18.0, "T_sink_in": 40.0, "V_source": 192.0,
+           "V_sink": 62.0}
+COMPARED = ("Q_sink_kW", "W_total_kW", "COP", "p_c_bar", "p_m_bar", "N_LS_rpm", "N_HS_rpm")
+
+
+def grid(full: bool) -> pd.DataFrame:
+    """Operating points x set points 4..24 bar(g): the nominal point, source 22-26 degC (outlet
+    18 degC, and 16.5 degC where the LS saturates), sink 38-45 degC at 45-75 m3/h, 192 and 230 m3/h
+    of source water (230: beyond the LS stage at 1800 rpm)."""
+    ops = [NOMINAL]
+    T_in = (22.0, 24.0, 26.0) if full else (22.0, 26.0)
+    for a, b, c, d, e in itertools.product(T_in, (18.0, 16.5), (38.0, 45.0), (192.0, 230.0), (45.0, 75.0)):
+        if full or (b == 18.0) != (d == 230.0):
+            ops.append({"T_source_in": a, "T_source_out": b, "T_sink_in": c, "V_source": d, "V_sink": e})
+    base = pd.DataFrame(ops)
+    df = base.loc[base.index.repeat(len(SET_POINTS))].reset_index(drop=True)
+    df["p_m_sp"] = np.tile(SET_POINTS, len(base))
+    return df
+
+
+def scalar_frame(df: pd.DataFrame, params, ls_mode: str) -> pd.DataFrame:
+    rows = []
+    for i in range(len(df)):
+        try:
+            res = solve(inputs_from_row(df.iloc[i], AMB), params, ls_mode=ls_mode)
+            rows.append(("ok", "", res))
+        except InfeasibleOperation as exc:
+            rows.append((exc.reason, str(exc), exc.result))
+        except ModelError as exc:
+            rows.append((exc.reason, str(exc), None))
+    return frame_of(rows, params)
+
+
+def learned_params(plant, delta: bool = False):
+    """The plant with LearnedCompressors: a CompressorLearner fed synthetic observations in two
+    clusters per stage (local curves where they are), optionally with an uncertainty draw."""
+    rng = np.random.default_rng(0)
+    k = 3000
+    obs = {c: np.full(k, np.nan) for c in OBS_COLUMNS}
+    obs["t"] = np.arange(k) * 60.0
+    for st, pi0, n0 in (("LS", 2.4, 1.05), ("HS", 1.9, 1.0)):
+        pi = np.concatenate([rng.normal(pi0, 0.2, k // 2), rng.normal(pi0 + 0.5, 0.15, k - k // 2)])
+        n = np.concatenate([rng.normal(n0, 0.1, k // 2), rng.normal(n0 + 0.1, 0.06, k - k // 2)])
+        obs[f"pi_{st}"], obs[f"n_{st}"] = pi, n
+        obs[f"eta_is_{st}"] = (0.77 - 0.03 * (pi - 2.4) ** 2 - 0.12 * (n - 1.0) ** 2 + 0.01 * np.sin(4 * pi)
+                               + rng.normal(0, 0.002, k))
+        obs[f"eta_vol_{st}"] = 0.93 - 0.03 * pi - 0.08 * (n - 0.9) ** 2 + rng.normal(0, 0.002, k)
+        obs[f"drive_{st}"] = np.full(k, 1.03)
+    learner = CompressorLearner(plant)
+    learner.update(pd.DataFrame(obs))
+    if not delta:
+        return learner.apply(plant)
+    d = learner.draws(1, np.random.default_rng(1))[0]
+    return plant.replace(comp_LS=learner.compressor("LS", delta=d["LS"]),
+                         comp_HS=learner.compressor("HS", delta=d["HS"]))
+
+
+@pytest.fixture(scope="module")
+def learned(plant):
+    return learned_params(plant, delta=False)
+
+
+@pytest.fixture(scope="module")
+def learned_delta(plant):
+    return learned_params(plant, delta=True)
+
+
+def near_limit(params, a: pd.Series, b: pd.Series) -> bool:
+    """A row solved by both whose statuses may differ: a limit-deciding value within NEAR_LIMIT."""
+    ls = params.comp_LS
+    tol = LS_SPEED_LOOSE * ls.N_nom
+    for r in (a, b):
+        if not math.isfinite(r["N_LS_rpm"]):
+            return False
+        d = min(abs(r["N_LS_rpm"] - (ls.N_max + tol)), abs(r["N_LS_rpm"] - (ls.N_min - tol)))
+        if d <= NEAR_LIMIT * ls.N_nom or abs(r["pinch_K"]) <= NEAR_LIMIT:
+            return True
+    return False
+
+
+def check_agreement(params, df: pd.DataFrame, ls_mode: str) -> dict:
+    vr = solve_many(df, params, ls_mode=ls_mode)
+    got = vr.frame()
+    ref = scalar_frame(df, params, ls_mode)
+    differ = np.flatnonzero(got["status"].to_numpy() != ref["status"].to_numpy())
+    exempt = [i for i in differ if near_limit(params, got.iloc[i], ref.iloc[i])]
+    assert len(exempt) == len(differ), got.iloc[[i for i in differ if i not in exempt]][["status", "reason"]]
+    assert len(exempt) <= 0.005 * len(df)
+    same = np.setdiff1d(np.arange(len(df)), differ)
+    # the same reason texts; a number printed from a trial point may differ in its last digit
+    mask = lambda texts: [re.sub(r"-?\d+\.?\d*", "#", t) for t in texts]   # noqa: E731
+    assert mask(got["reason"].to_numpy()[same]) == mask(ref["reason"].to_numpy()[same])
+    solved = got["Q_sink_kW"].notna().to_numpy() & ref["Q_sink_kW"].notna().to_numpy()
+    assert solved.sum() > 0.3 * len(df)
+    assert (got["Q_sink_kW"].notna() == ref["Q_sink_kW"].notna()).to_numpy()[same].all()
+    for k in COMPARED:
+        rel = np.abs(got[k].to_numpy() - ref[k].to_numpy()) / np.abs(ref[k].to_numpy())
+        assert rel[solved].max() <= AGREE_REL, (k, rel[solved].max())
+    for k in ("hs_saturated", "ls_saturated"):
+        assert (got[k].to_numpy()[solved] == ref[k].to_numpy()[solved]).all(), k
+    dT = np.abs(got["T_source_out_C"].to_numpy() - ref["T_source_out_C"].to_numpy())[solved]
+    assert dT.max() <= T_SO_ABS
+    assert np.abs(got["energy_residual"].to_numpy()[solved]).max() <= ENERGY_TOL
+    if params.comp_LS.drive_factor == 1.0 and params.comp_HS.drive_factor == 1.0:
+        q = got.loc[solved]
+        bal = (q["Q_sink_kW"] - q["Q_source_kW"] - q["W_total_kW"]).abs() / q["Q_sink_kW"]
+        assert bal.max() <= ENERGY_TOL
+    return {"rows": len(df), "fallback": vr.fallback_rows, "solved": int(solved.sum()),
+            "floated": int(got["ls_saturated"].eq(1.0).sum()), "hs_max": int(got["hs_saturated"].eq(1.0).sum())}
+
+
+# ---------------------------------------------------------------------------------------------------
+# 1. agreement with the scalar solver
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_agrees_with_the_scalar_solver_on_the_default_plant(plant, ls_mode):
+    info = check_agreement(plant, grid(full=True), ls_mode)
+    assert info["hs_max"] > 50                        # the plateau below the HS's reach is in the grid
+    assert info["solved"] - info["hs_max"] > 100      # and the set point held ("sp")
+    if ls_mode == "float":
+        assert info["floated"] > 50                   # rows where the LS saturates
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_agrees_on_a_fouled_evaporator(plant, ls_mode):
+    check_agreement(plant.replace(R_th_f=5e-6), grid(full=False), ls_mode)    # 5e-3 K/kW
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_agrees_with_learned_compressors(plant, learned, ls_mode):
+    assert learned.comp_HS.local_is is not None and learned.comp_LS.local_vol is not None
+    check_agreement(learned, grid(full=False), ls_mode)
+
+
+def test_agrees_with_an_uncertainty_draw_of_the_learned_curves(learned_delta):
+    assert learned_delta.comp_HS.delta_is is not None
+    check_agreement(learned_delta, grid(full=False).iloc[::3], "float")
+
+
+def test_frame_layout_equals_frame_of_and_the_set_point_override(plant):
+    df = grid(full=False).iloc[:42]
+    got = solve_many(df.drop(columns="p_m_sp"), plant, p_m_sp=14.0).frame(index=df.index)
+    ref = simulate_batch(df.drop(columns="p_m_sp"), plant, p_m_sp=14.0)
+    assert list(got.columns) == list(OUTPUT_KEYS) + ["status", "reason"] == list(ref.columns)
+    assert (got.dtypes == ref.dtypes).all() and got.index.equals(ref.index)
+    assert np.allclose(got["p_m_barg"].dropna(), 14.0) or got["hs_saturated"].eq(1.0).any()
+    sp = np.linspace(8.0, 20.0, len(df))
+    a = solve_many(df.drop(columns="p_m_sp"), plant, p_m_sp=sp).frame()
+    b = solve_many(df.assign(p_m_sp=sp), plant).frame()
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_bad_inputs_get_the_scalar_statuses(plant):
+    rows = pd.DataFrame([{**NOMINAL, "p_m_sp": 16.0}] * 5)
+    rows.loc[0, "T_source_in"] = np.nan
+    rows.loc[1, "T_source_out"] = 26.0                 # not cooled
+    rows.loc[2, "V_sink"] = 0.0
+    rows.loc[3, "p_m_sp"] = 120.0                      # above the critical pressure
+    got = solve_many(rows, plant).frame()
+    ref = simulate_batch(rows, plant)
+    assert got["status"].tolist() == ref["status"].tolist()
+    assert got["reason"].tolist() == ref["reason"].tolist()
+    with pytest.raises(ValueError, match="ls_mode must be one of flag, float"):
+        solve_many(rows, plant, ls_mode="clamp")
+
+
+# ---------------------------------------------------------------------------------------------------
+# 2. the subcooler outlet on the equation of state
+# ---------------------------------------------------------------------------------------------------
+def test_subcooler_outlet_is_the_eos_liquid_state(plant):
+    df = pd.DataFrame([{**NOMINAL, "p_m_sp": 16.0}, {**NOMINAL, "p_m_sp": 10.0},
+                       {**NOMINAL, "V_sink": 50.0, "T_sink_in": 44.0, "p_m_sp": 16.0},
+                       {**NOMINAL, "V_source": 170.0, "T_source_in": 23.0, "p_m_sp": 20.0}])
+    vr = solve_many(df, plant)
+    assert (vr.status == "ok").all() and vr.fallback_rows == 0
+    UA_SC = plant.CF_SC * plant.U_SC * plant.A_SC
+    for i in range(len(df)):
+        p_c, T_SC, T_c = vr["p_c_bar"][i] * BAR, C_to_K(vr["T_SC_C"][i]), C_to_K(vr["T_c_C"][i])
+        h_SC, h_f = vr["h_SC_J_kg"][i], vr["h_con_out_J_kg"][i]
+        assert T_SC < T_c - 1.0                                       # really subcooled
+        h_ref = CP.PropsSI("H", "P", p_c, "T", T_SC, "Ammonia")
+        assert abs(h_SC - h_ref) <= EOS_TOL * abs(h_ref)
+        assert h_f == pytest.approx(CP.PropsSI("H", "P", p_c, "Q", 0, "Ammonia"), rel=EOS_TOL)
+        # the SC's duty three ways: refrigerant side, water side, eps-NTU with the secant capacity
+        Q_SC = vr["Q_SC_kW"][i] * 1e3
+        m_HS = vr["m_HS_kg_s"][i]
+        assert m_HS * (h_f - h_SC) == pytest.approx(Q_SC, rel=1e-9)
+        C_w = plant.cp_w * plant.rho_w * df["V_sink"][i] / 3600.0
+        T_ki = C_to_K(df["T_sink_in"][i])
+        assert C_w * (C_to_K(vr["T_w_SC_out_C"][i]) - T_ki) == pytest.approx(Q_SC, rel=1e-9)
+        eps, C_min = counterflow_eps(m_HS * (h_f - h_SC) / (T_c - T_SC), C_w, UA_SC)
+        assert eps * C_min * (T_c - T_ki) == pytest.approx(Q_SC, rel=1e-8)
+        assert vr["subcooling_K"][i] == pytest.approx(T_c - T_SC, abs=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 3. the vectorised compressor protocol
+# ---------------------------------------------------------------------------------------------------
+def _compressors(plant, learned, learned_delta):
+    from simulator.compressors import NAN6, ShapedCompressor
+    hs = plant.comp_HS
+    shaped = ShapedCompressor(swept_volume=hs.swept_volume, N_nom=hs.N_nom, N_min=hs.N_min, N_max=hs.N_max,
+                              eta_is=NAN6, eta_vol=NAN6, n_opt=1.1, w_n=0.4, vol_c=0.05, family="test")
+    return {"polynomial": plant.comp_LS, "learned": learned.comp_HS, "learned_delta": learned_delta.comp_HS,
+            "shaped": shaped}
+
+
+@pytest.mark.parametrize("kind", ["polynomial", "learned", "learned_delta", "shaped"])
+def test_vectorised_compressor_methods_equal_the_scalar_ones(plant, learned, learned_delta, kind):
+    comp = _compressors(plant, learned, learned_delta)[kind]
+    assert vectorized(comp) is comp
+    rng = np.random.default_rng(3)
+    k = 600
+    pi, n = rng.uniform(1.3, 4.5, k), rng.uniform(0.35, 1.5, k)
+    m, rho, n0 = rng.uniform(0.1, 2.5, k), rng.uniform(3.0, 30.0, k), rng.uniform(0.5, 1.3, k)
+    if kind.startswith("learned"):                     # half of the points inside the local grid
+        pi[: k // 2], n[: k // 2] = rng.normal(2.2, 0.3, k // 2), rng.normal(1.05, 0.1, k // 2)
+        assert comp.local_is.value_v(pi, n)[1].sum() > k // 4
+    for vec, sca in ((comp.eta_is_v, comp.eta_is_at), (comp.eta_vol_v, comp.eta_vol_at)):
+        ref = np.array([sca(a, b) for a, b in zip(pi, n)])
+        np.testing.assert_allclose(vec(pi, n), ref, rtol=COMP_REL, atol=0)
+    n_v, ev_v = comp.speed_for_flow_v(m, rho, pi, n0)
+    ref = []
+    for a, b, c, d in zip(m, rho, pi, n0):
+        try:
+            ref.append(comp.speed_for_flow(a, b, c, d))
+        except ValueError:
+            ref.append((np.nan, np.nan))
+    ref = np.array(ref)
+    assert np.isfinite(ref[:, 0]).sum() > k // 2
+    assert (np.isnan(n_v) == np.isnan(ref[:, 0])).all()
+    np.testing.assert_allclose(n_v, ref[:, 0], rtol=COMP_REL, atol=0)
+    np.testing.assert_allclose(ev_v, ref[:, 1], rtol=COMP_REL, atol=0)
+
+
+def test_a_compressor_without_the_protocol_is_looped(plant):
+    class Derated(Compressor):
+        def eta_is_at(self, pi, n):
+            return Compressor.eta_is_at(self, pi, n) - 0.02
+
+    comp = Derated(**{f: getattr(plant.comp_HS, f) for f in ("swept_volume", "N_nom", "N_min", "N_max",
+                                                             "eta_is", "eta_vol", "drive_factor")})
+    v = vectorized(comp)
+    assert isinstance(v, _Looped)               # the inherited polynomial eta_is_v would be wrong
+    assert v.eta_is_v([2.0], [1.0])[0] == pytest.approx(comp.eta_is_at(2.0, 1.0), rel=1e-15)
+    params = plant.replace(comp_HS=comp)
+    df = pd.DataFrame([{**NOMINAL, "p_m_sp": sp} for sp in (10.0, 16.0, 20.0)])
+    got = solve_many(df, params).frame()
+    ref = scalar_frame(df, params, "flag")
+    assert got["status"].tolist() == ref["status"].tolist()
+    np.testing.assert_allclose(got["COP"], ref["COP"], rtol=AGREE_REL)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 4. the scalar fallback
+# ---------------------------------------------------------------------------------------------------
+def test_rows_outside_the_tables_or_forced_get_the_scalar_answer(plant):
+    cold = {**NOMINAL, "T_source_in": -67.5, "T_source_out": -72.5, "p_m_sp": 16.0}  # T_e below 200 K
+    df = pd.DataFrame([cold] + [{**NOMINAL, "p_m_sp": sp} for sp in (8.0, 16.0, 22.0)])
+    force = np.array([False, True, False, True])
+    vr = solve_many(df, plant, ls_mode="float", force_scalar=force)
+    assert vr.fallback.tolist() == [True, True, False, True] and vr.fallback_rows == 3
+    got, ref = vr.frame(), scalar_frame(df, plant, "float")
+    assert got["status"].tolist() == ref["status"].tolist()
+    assert got["reason"].tolist() == ref["reason"].tolist()
+    pd.testing.assert_frame_equal(got.iloc[[1, 3]], ref.iloc[[1, 3]])   # the forced rows: identical
+    free = solve_many(df.iloc[[1, 3]], plant, ls_mode="float").frame()
+    for k in COMPARED:
+        np.testing.assert_allclose(free[k], ref[k].iloc[[1, 3]], rtol=AGREE_REL)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the tables against HEOS
+# ---------------------------------------------------------------------------------------------------
+def test_tables_agree_with_heos():
+    """Documented accuracy of model.cycletables on random states: saturation (p, rho to 1e-11
+    relative, h to 1e-6 J/kg, T_sat(p) to 1e-9 K), superheated vapour up to 220 K of superheat
+    (h to 2e-3 J/kg, s to 1e-5 J/kg/K, rho to 2e-8 relative; beyond, to 4500 K, 5e-2 J/kg, 5e-9
+    relative) and its inverses (theta to 3e-6 K), the isentropic state (h to 3e-3 J/kg) and T from
+    h (to 1e-6 K) by direct lookup, subcooled liquid (h to 3e-3 J/kg)."""
+    tab, fl = get_cycle_tables(), Fluid()
+    rng = np.random.default_rng(7)
+    T = rng.uniform(200.0, 395.0, 300)
+    p, h_f, h_g, s_g, rho_g = tab.sat(T)
+    ref = np.array([[s.p, s.h_f, s.h_g, s.s_g, s.rho_g] for s in (fl.sat_T(float(t)) for t in T)])
+    assert np.max(np.abs(p / ref[:, 0] - 1)) < 1e-11 and np.max(np.abs(rho_g / ref[:, 4] - 1)) < 1e-11
+    assert np.max(np.abs(h_f - ref[:, 1])) < 1e-6 and np.max(np.abs(h_g - ref[:, 2])) < 1e-6
+    assert np.max(np.abs(s_g - ref[:, 3])) < 1e-8
+    assert np.max(np.abs(tab.T_sat(ref[:, 0]) - T)) < 1e-9
+    T_sat = rng.uniform(200.0, 385.0, 600)
+    theta = np.concatenate([rng.uniform(0.0, 3.0, 200), rng.uniform(0.0, 220.0, 300),
+                            rng.uniform(220.0, THETA_MAX, 100)])
+    h, s, rho = tab.vapour(T_sat, theta)
+    p = tab.p_sat(T_sat)
+    ref = np.array([fl.vapour_pT(float(a), float(b + c)) for a, b, c in zip(p, T_sat, theta)])
+    lim = np.where(theta <= 220.0, 2e-3, 5e-2)
+    assert (np.abs(h - ref[:, 0]) <= lim).all()
+    assert np.max(np.abs(s - ref[:, 1])[theta <= 220.0]) < 1e-5
+    assert np.max(np.abs(rho / ref[:, 2] - 1)) < 2e-8
+    for key, col in (("s", 1), ("h", 0)):
+        th, _, _, _ = tab.vapour_from(key, T_sat, ref[:, col])
+        assert np.max(np.abs(th - theta)[theta <= 220.0]) < 3e-6
+    # the direct lookups of the flowsheet: isentropic discharge state, T from (p, h)
+    T_c = rng.uniform(250.0, 380.0, 300)
+    T_m = T_c - rng.uniform(1.0, 45.0, 300)
+    s_g = np.array([fl.sat_T(float(t)).s_g for t in T_m])
+    ref = np.array([fl.isentropic(fl.sat_T(float(a)).p, float(b)) for a, b in zip(T_c, s_g)])
+    assert np.max(np.abs(tab.h_isentropic(T_c, s_g) - ref[:, 0])) < 3e-3
+    h = ref[:, 0] + rng.uniform(0.0, 4e5, 300)
+    T_ref = np.array([fl.vapour_ph(fl.sat_T(float(a)).p, float(b))[0] for a, b in zip(T_c, h)])
+    assert np.max(np.abs(T_c + tab.theta_from_h(T_c, h) - T_ref)) < 1e-6
+    T_c, d = rng.uniform(270.0, 385.0, 300), rng.uniform(0.0, 70.0, 300)
+    h_l = tab.liquid(T_c, d)
+    ref = [fl.liquid_pT(fl.sat_T(float(a)).p, float(a - b)) for a, b in zip(T_c, d)]
+    assert np.max(np.abs(h_l - ref)) < 3e-3
+    assert np.isnan(tab.vapour(np.array([150.0]), np.array([10.0]))[0]).all()   # outside: NaN

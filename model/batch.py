@@ -21,6 +21,11 @@ from .fluid import get_fluid
 from .params import CycleInputs, PlantParams
 from .units import C_to_K, K_to_C, barg_to_Pa, m3h_to_m3s
 
+# The batch entry points (simulate_batch here, model.optimize.Evaluator) solve all rows at once with
+# model.vcycle.solve_many (numpy over the rows, HEOS spline tables); False: row by row with the scalar
+# model.cycle.solve, warm-started from the previous row (the benchmark compares the two)
+VECTORISED = True
+
 INPUT_COLUMNS = ("T_source_in", "T_source_out", "T_sink_in", "V_source", "V_sink", "p_m_sp")
 SOLVED_WITH_FLAG = ("ls_speed_high", "ls_speed_low", "negative_pinch")
 OUTPUT_KEYS = (
@@ -59,6 +64,9 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
     ls_mode : "flag" (measured data: an LS speed out of range is a flagged row) or "float"
         (prediction: the LS saturates and T_source,out floats; see model.cycle.solve).
     """
+    if VECTORISED:
+        from .vcycle import solve_many
+        return solve_many(df, params, p_m_sp=p_m_sp, ls_mode=ls_mode).frame(columns, df.index)
     rows = solve_rows(df, params, p_m_sp, ls_mode)
     return frame_of(rows, params, columns, df.index)
 

@@ -340,14 +340,21 @@ class CycleTables:
     def liq_row(self, T_c):
         """The liquid table's row data at T_c, for ``liq_raw`` in a loop over the subcooling."""
         x = (T_c - self._liq_x0) * (1.0 / LIQ_DT)
-        i = x.astype(np.intp)
+        i = np.where(np.isfinite(x), np.nan_to_num(x), 0.0).astype(np.intp)   # NaN rows stay NaN
         return i * (self._liq_nd - 1), (x - i)[:, None]
 
     def liq_raw(self, row, d):
         """(h, dh/dT at constant pressure) of the liquid at subcooling d [K] (``liq_row``'s T_c)."""
         base, tx = row
         y = (d - self._liq_d0) * (1.0 / LIQ_DD)
-        j = y.astype(np.intp)
+        # a row whose subcooling is not a number (a failed trial upstream) reads node 0 and comes
+        # back NaN: an integer cast of NaN is an arbitrary index
+        bad = ~np.isfinite(y)
+        if bad.any():
+            y = np.where(bad, np.nan, y)
+            j = np.where(bad, 0, np.nan_to_num(y)).astype(np.intp)
+        else:
+            j = y.astype(np.intp)
         g = self._liq[base + j]
         a = ((g[:, 0:4] * tx + g[:, 4:8]) * tx + g[:, 8:12]) * tx + g[:, 12:16]
         t = y - j

@@ -48,6 +48,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
+from . import batch
 from .batch import INPUT_COLUMNS, frame_of, simulate_batch, solve_rows
 from .params import PlantParams
 from .units import BAR, Pa_to_barg
@@ -63,6 +64,7 @@ PLATEAU_RTOL = 1e-9       # COP differences below this (relative) are ties
 TWO_LEVEL_SCAN = True     # every second grid point first, then the neighbours of feasible ones
 EDGE_SHORTCUT = True      # no Brent search when the best grid point is the feasible stretch's edge
 BRENT_FROM_BRACKET = True # Brent's parabolic steps from the scan's bracket instead of a bounded search
+FINE_STEP = 0.05          # bar: the vectorised search's refinement grid around the best coarse point
 SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mode="float")
 GUESS_BAR = 1.0           # bar: a row's own solution this close in set point is its warm start
 PLATEAU_REUSE_BAR = 0.01  # bar: below a row's floating p_m by this, its plateau solution is reused
@@ -125,6 +127,7 @@ class Point:
     hs_saturated: bool              # every row HS-saturated
     frame: pd.DataFrame             # per-row model outputs
     beyond: float | None = None     # search: a better set point just outside the feasible set
+    vres: object = None             # the vectorised solver's result (model.vcycle.VResult), if any
 
     @property
     def ok(self) -> bool:
@@ -212,6 +215,10 @@ class Evaluator:
         key = None if sp is None else round(float(sp), 9)
         if rows is None and key in self._cache:
             return self._cache[key]
+        if batch.VECTORISED:
+            if rows is None:
+                return self.at_many([sp])[0]
+            return self._solve_v([sp], np.asarray(rows, dtype=int))[0]
         self.evals += 1
         idx = np.arange(len(self.rows)) if rows is None else np.asarray(rows, dtype=int)
         w = self.w if rows is None else self.w[idx]
@@ -247,6 +254,55 @@ class Evaluator:
         return p
 
 
+    def at_many(self, sps) -> list[Point]:
+        """``at`` for several set points (None: the rows' own); with VECTORISED the ones not cached
+        yet are solved in one call of the vectorised solver."""
+        keys = [None if sp is None else round(float(sp), 9) for sp in sps]
+        if not batch.VECTORISED:
+            return [self.at(sp) for sp in sps]
+        todo = list(dict.fromkeys(k for k in keys if k not in self._cache))
+        if todo:
+            for k, p in zip(todo, self._solve_v(todo, np.arange(len(self.rows)))):
+                self._cache[k] = p
+        return [self._cache[k] for k in keys]
+
+    def _solve_v(self, sps: list, idx: np.ndarray) -> list[Point]:
+        """The rows ``idx`` at each set point of ``sps`` (None: their own), one solve_many call."""
+        from .vcycle import solve_many
+        k, n = len(sps), len(idx)
+        self.evals += k
+        self.solves += k * n
+        own = self._own_sp[idx] if self._own_sp is not None else np.full(n, np.nan)
+        sp_all = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
+        rows = self.rows.iloc[np.tile(idx, k)]
+        vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode)
+        frame = vres.frame(COLUMNS)
+        w = self.w[idx]
+        out = []
+        for j, sp in enumerate(sps):
+            part = slice(j * n, (j + 1) * n)
+            f = frame.iloc[part].set_axis(self.rows.index[idx])
+            p = _point(sp, f, w)
+            p.vres = _take(vres, np.arange(j * n, (j + 1) * n))
+            out.append(p)
+        return out
+
+
+def _take(v, idx: np.ndarray):
+    """The rows ``idx`` of a VResult (every per-row array sliced)."""
+    n = len(v)
+    kw = {}
+    for f in dataclasses.fields(v):
+        val = getattr(v, f.name)
+        if isinstance(val, np.ndarray) and val.shape[:1] == (n,):
+            val = val[idx]
+        elif isinstance(val, dict):
+            val = {a: (b[idx] if isinstance(b, np.ndarray) and b.shape[:1] == (n,) else b)
+                   for a, b in val.items()}
+        kw[f.name] = val
+    return type(v)(**kw)
+
+
 def _point(sp, frame: pd.DataFrame, w: np.ndarray) -> Point:
     ok = np.isin(frame["status"].to_numpy(), SOLVED)
     Q = frame["Q_sink_kW"].to_numpy(dtype=float)
@@ -268,6 +324,8 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
     candidates become infeasible: the feasible set is one stretch around the operating point.
     Returns (set point, its Point) with the plateau convention applied. Raises OptimizationError when
     no candidate solves (and is feasible)."""
+    if batch.VECTORISED:
+        return _search_v(ev, lo, hi, coarse_step, xtol, feasible)
     n = len(ev.rows)
 
     def value(p: Point) -> float:
@@ -357,6 +415,66 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
                 if q.ok and not feasible(q) and q.COP > p.COP * (1.0 + PLATEAU_RTOL):
                     p.beyond = float(nb)
     if p.hs_saturated:   # plateau: the set point that just reaches the floating p_m
+        amb = ev.params.ambient_pressure
+        p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5
+        sp_opt = float(Pa_to_barg(p_m, amb / 1e5))
+    return sp_opt, p
+
+
+def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: float,
+              feasible: Callable[[Point], bool] | None) -> tuple[float, Point]:
+    """``search`` in three batched calls of the vectorised solver: the whole coarse grid; a fine grid
+    (FINE_STEP) over the best coarse point's feasible neighbours; the vertex of the parabola through
+    the best fine point and its neighbours (to ``xtol``, as Brent's method would), kept when it is
+    better. Then the same beyond-check and plateau convention as the scalar search."""
+    def value(p: Point) -> float:
+        if not p.ok or (feasible is not None and not feasible(p)):
+            return -math.inf
+        return p.COP
+
+    grid = np.arange(lo, hi + 1e-9, coarse_step)
+    if grid[-1] < hi - 1e-9:
+        grid = np.append(grid, hi)
+    scan = np.array([value(p) for p in ev.at_many(list(grid))])
+    if not np.isfinite(scan).any():
+        raise OptimizationError("no set point in the range solves every sample of the window"
+                                + (" within the trusted region" if feasible else ""))
+    best = float(scan.max())
+    i = int(np.flatnonzero(scan >= best - PLATEAU_RTOL * abs(best))[-1])
+    j0 = i
+    while j0 > 0 and np.isfinite(scan[j0 - 1]):
+        j0 -= 1
+    j1 = i
+    while j1 < len(grid) - 1 and np.isfinite(scan[j1 + 1]):
+        j1 += 1
+    a = float(grid[max(i - 1, j0)])
+    b = float(grid[min(i + 1, j1)])
+    cands = [float(grid[i])]
+    if b - a > xtol:
+        fine = np.unique(np.append(np.arange(a, b + 1e-9, FINE_STEP), [a, b]))
+        fv = np.array([value(p) for p in ev.at_many(list(fine))])
+        k = int(np.flatnonzero(fv >= np.nanmax(fv) - PLATEAU_RTOL * abs(np.nanmax(fv)))[-1])
+        cands.insert(0, float(fine[k]))
+        if 0 < k < len(fine) - 1 and np.isfinite(fv[k - 1]) and np.isfinite(fv[k + 1]):
+            x0, x1, x2 = fine[k - 1], fine[k], fine[k + 1]
+            y0, y1, y2 = fv[k - 1], fv[k], fv[k + 1]
+            den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+            if den != 0.0:
+                xv = x1 - 0.5 * ((x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)) / den
+                if x0 < xv < x2 and abs(xv - x1) > 0.1 * xtol:
+                    cands.insert(0, float(xv))
+    vals = [value(ev.at(c)) for c in cands]
+    sp_opt = cands[int(np.argmax(vals))]
+    p = ev.at(sp_opt)
+    if not math.isfinite(value(p)):
+        raise OptimizationError("the optimum found does not solve every sample")
+    p.beyond = None
+    if feasible is not None:
+        nbs = [x for x in (sp_opt - 0.5 * coarse_step, sp_opt + 0.5 * coarse_step) if lo <= x <= hi]
+        for nb, q in zip(nbs, ev.at_many(nbs)):
+            if q.ok and not feasible(q) and q.COP > p.COP * (1.0 + PLATEAU_RTOL):
+                p.beyond = float(nb)
+    if p.hs_saturated:
         amb = ev.params.ambient_pressure
         p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5
         sp_opt = float(Pa_to_barg(p_m, amb / 1e5))

@@ -193,8 +193,8 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
         return None
     amb = params.ambient_pressure / 1e5
     path = []
-    for x in [None, *np.arange(lo, hi + 1e-9, s.path_step_bar)]:
-        p = ev.at(None if x is None else float(x))
+    xs = [None, *(float(x) for x in np.arange(lo, hi + 1e-9, s.path_step_bar))]
+    for x, p in zip(xs, ev.at_many(xs)):
         if p.ok:
             path.append((_pm_barg(p, ev.w, amb), _distance(learner, params, offsets, p),
                          math.nan if x is None else float(x)))
@@ -269,6 +269,13 @@ class AdviceDraft:
     curve_residual: dict
     evaluations: int
     optimizer: str = "search"        # "search", or "surrogate" when sp_override was taken
+    ev: Evaluator | None = None      # the representative rows' Evaluator (its solutions), in this
+                                     # process only: not pickled
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["ev"] = None
+        return d
 
 
 def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
@@ -358,7 +365,10 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                 sp_opt = p_m - amb
     if sp_opt is None:
         sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
-    opt = full.at(sp_opt)
+    p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
+    p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
+    gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
+    opt, gm_p = full.at_many([sp_opt, min(max(gm - amb, lo), hi)])
     if not opt.ok:
         why = opt.frame.loc[~np.isin(opt.frame["status"].to_numpy(), SOLVED), "reason"].astype(str)
         raise OptimizationError(f"the recommended set point {sp_opt:.2f} bar(g) does not solve every "
@@ -371,16 +381,12 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
         vals = []
         for par in _draw_params(adaptive, learner, s, R_th_f_se_K_per_kW):
             e = Evaluator(rows, w, par, guess_from=ev)
-            b, a = e.at(None), e.at(sp_opt)
+            b, a = e.at_many([None, sp_opt])
             draws_ref.append(b.COP if b.ok else None)
             if a.ok and b.ok:
                 vals.append(100.0 * (a.COP / b.COP - 1.0))
         if len(vals) >= 2:
             sd_opt = float(np.std(vals, ddof=1))
-    p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
-    p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
-    gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
-    gm_p = full.at(min(max(gm - amb, lo), hi))
     # low-confidence reasons that do not depend on the recommendation
     resid = dict(curve_residual or {})
     reasons = []
@@ -421,7 +427,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
         hs_saturated_opt=bool(p_opt.hs_saturated), COP_opt_rep=float(p_opt.COP), ref=ref, opt=opt,
         gm_p=gm_p, gm=gm, sd_opt=sd_opt, draws_ref=draws_ref, R_th_f_se_K_per_kW=R_th_f_se_K_per_kW,
         reasons=reasons, dcop_step=dcop_step, coverage_share=float(coverage_share), curve_residual=resid,
-        evaluations=ev.evals + full.evals, optimizer=optimizer)
+        evaluations=ev.evals + full.evals, optimizer=optimizer, ev=ev)
 
 
 def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) -> AdviceResult:

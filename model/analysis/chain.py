@@ -40,7 +40,7 @@ from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, set
 from .cip import CipSettings, ForecastState, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
-from .surrogate_tracker import SurrogateTracker, TrackerSettings
+from .surrogate_tracker import SurrogateTracker, TrackerSettings, optimum_row
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
 LS_SATURATED_RPM = 15.0     # a measured LS speed this close to its maximum: at the limit
@@ -247,6 +247,7 @@ class WindowPartial:
     ev_rows: pd.DataFrame | None = None         # the advice's representative rows and weights
     ev_w: np.ndarray | None = None
     surrogate: dict | None = None               # the surrogate's prediction taken in place of the search
+    tracker_row: dict | None = None             # the surrogate tracker's row of this window (pass 2)
     samples: pd.DataFrame | None = None         # per-sample model series (replay's samples.csv)
 
 
@@ -586,6 +587,13 @@ class AnalysisChain:
                     curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
                     R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override)
                 out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
+                d = out.draft
+                if task.tracker is not None and d.ev is not None and task.tracker.takes_next():
+                    # the tracker's row of this window from the advice's own solutions
+                    out.ev_rows, out.ev_w = d.rows, d.w
+                    out.tracker_row = optimum_row(d.rows, d.w, adaptive,
+                                                  task.tracker.s.reference_p_m_sp_barg, res.t_end,
+                                                  ev=d.ev, bounds=(d.lo, d.hi))
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
 
@@ -616,7 +624,8 @@ class AnalysisChain:
             if adv.confident:
                 state.last_rec_barg = adv.p_m_sp_rec_barg
             if state.tracker is not None and partial.ev_rows is not None:
-                state.tracker.window(partial.ev_rows, partial.ev_w, partial.adaptive, res.t_end)
+                state.tracker.window(partial.ev_rows, partial.ev_w, partial.adaptive, res.t_end,
+                                     own=partial.tracker_row)
         return res
 
     def _evaluation_rows(self, adv_in: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:

@@ -129,10 +129,11 @@ class FormFit:
 
 
 def reference_inputs(rows: pd.DataFrame, w: np.ndarray, params: PlantParams,
-                     reference_barg: float) -> tuple[dict, Evaluator] | None:
+                     reference_barg: float, ev: Evaluator | None = None) -> tuple[dict, Evaluator] | None:
     """The surrogate's inputs for evaluation rows (canonical inputs, weights): the model at the
-    reference set point, weighted means. None when a row does not solve there."""
-    ev = Evaluator(rows, w, params)
+    reference set point, weighted means. None when a row does not solve there. ``ev``: an
+    Evaluator of these rows and parameters already at hand (its solutions are reused)."""
+    ev = ev if ev is not None else Evaluator(rows, w, params)
     p = ev.at(reference_barg)
     if not p.ok:
         return None
@@ -146,11 +147,14 @@ def reference_inputs(rows: pd.DataFrame, w: np.ndarray, params: PlantParams,
 
 
 def optimum_row(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, reference_barg: float,
-                t: float) -> dict | None:
+                t: float, ev: Evaluator | None = None,
+                bounds: tuple[float, float] | None = None) -> dict | None:
     """One training row: the inputs at the reference set point and the model's optimum over the
     whole set-point range (p_m,opt in bar a, dCOP against the reference in %). None when the model
-    cannot answer for these rows."""
-    r = reference_inputs(rows, w, params, reference_barg)
+    cannot answer for these rows. ``ev``: an Evaluator of these rows and parameters at hand (the
+    advice's: its solutions are reused), ``bounds``: the set-point range [bar(g)] (default: the
+    rows' own, ``window_range``)."""
+    r = reference_inputs(rows, w, params, reference_barg, ev)
     if r is None:
         return None
     x, ev = r
@@ -159,7 +163,7 @@ def optimum_row(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, referenc
     if not act.ok:
         return None
     try:
-        lo, hi = window_range(act.frame, amb)
+        lo, hi = bounds if bounds is not None else window_range(act.frame, amb)
         _, p = search(ev, lo, hi)
     except OptimizationError:
         return None
@@ -178,20 +182,31 @@ class SurrogateTracker:
         self._since = 0
         self._windows = 0             # windows seen since the last rows were taken
 
-    def window(self, rows: pd.DataFrame, w: np.ndarray, params: PlantParams, t: float) -> int:
+    def takes_next(self) -> bool:
+        """Whether the next ``window`` call adds rows (so a caller computes them only then)."""
+        return self.s.enabled and (self.qualified is None or self._windows + 1 >= self.s.qualified_every)
+
+    def window(self, rows: pd.DataFrame, w: np.ndarray, params: PlantParams, t: float,
+               own: dict | None = None) -> int:
         """Add the rows of one analysis window (evaluation rows ``rows``/``w`` on the adaptive
         model ``params``), unless a form is qualified and this is not an ``qualified_every``-th
-        window. Returns the rows added."""
+        window. ``own``: the window's own-fouling row already computed (``optimum_row`` with the
+        advice's Evaluator). Returns the rows added."""
         if not self.s.enabled:
             return 0
         self._windows += 1
         if self.qualified is not None and self._windows < self.s.qualified_every:
             return 0
         self._windows = 0
-        levels = [params.R_th_f] + [1e-3 * x for x in self.s.extra_fouling_K_per_kW]
         new = []
-        for R in levels:
-            r = optimum_row(rows, w, params.replace(R_th_f=float(R)), self.s.reference_p_m_sp_barg, t)
+        if own is not None:
+            new.append(own)
+        else:
+            r = optimum_row(rows, w, params, self.s.reference_p_m_sp_barg, t)
+            if r is not None:
+                new.append(r)
+        for R in self.s.extra_fouling_K_per_kW:
+            r = optimum_row(rows, w, params.replace(R_th_f=1e-3 * float(R)), self.s.reference_p_m_sp_barg, t)
             if r is not None:
                 new.append(r)
         self.add(new)

@@ -71,6 +71,8 @@ class LearningSettings:
     local: bool = True                # locally weighted curves where the data is (see LocalCurves)
     local_bandwidth_bins: float = 2.0 # kernel width of the local fits, in bins
     local_prior_weight: float = 20.0  # samples pulling a local fit toward the global one
+    prior_sd: float = 0.03            # how far [-] a plant's curve may lie from the data sheet's:
+                                      # the uncertainty of the learned curves away from the data
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "LearningSettings":
@@ -1026,19 +1028,27 @@ class CompressorLearner:
         return self.stats[(stage, curve)].w >= self.s.min_samples
 
     def covariance(self, stage: str, curve: str) -> np.ndarray:
-        """Covariance of the scaled-basis coefficients: s^2 (A_prior + A_data)^-1, s^2 the data's
-        residual variance inflated by (1 + rho1)/(1 - rho1) for serially correlated residuals."""
+        """Covariance of the scaled-basis coefficients, (P + A_data / s^2)^-1: s^2 the data's
+        residual variance inflated by (1 + rho1)/(1 - rho1) for serially correlated residuals, and
+        P the prior's precision as far as the data sheet deserves it: the prior's pseudo-
+        observations scaled so that the curve's prior standard deviation, averaged over the prior's
+        grid, is ``prior_sd`` (a plant's curve may differ from the data sheet's by a few points
+        anywhere). The fit itself keeps its ``prior_weight``; only the uncertainty changes: inside
+        the data it is the data's, away from it it grows toward ``prior_sd``, so a recommendation
+        that extrapolates the curves carries an uncertainty that says so."""
         ps = self._prior_stats[(stage, curve)]
         st = self.stats[(stage, curve)]
-        A = ps.A + st.A
-        a = np.linalg.solve(A, ps.b + st.b)
+        a = np.linalg.solve(ps.A + st.A, ps.b + st.b)
         if st.w > 6:
             sse = st.yy - 2 * a @ st.b + a @ st.A @ a
             s2 = max(sse, 0.0) / (st.w - 6)
         else:
             s2 = 0.02 ** 2
         s2 = max(s2, 1e-8) * (1 + st.rho1) / (1 - st.rho1)
-        return s2 * np.linalg.inv(A)
+        # ps.A = prior_weight * mean over the grid of x x^T; the prior variance at a grid point
+        # averages trace(G^-1 M) / k over the grid for precision k M (M = mean x x^T): 6 / k
+        P = ps.A * (6.0 / (self.s.prior_weight * self.s.prior_sd ** 2))
+        return np.linalg.inv(P + st.A / s2)
 
     def rmse(self, stage: str, curve: str) -> float:
         st = self.stats[(stage, curve)]

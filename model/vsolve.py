@@ -78,7 +78,12 @@ def _reason_of(e: int) -> str:
 class Outcome:
     """Per-row result of the cold path: ``code`` ('' where solved, else the scalar's reason code or
     "fallback"), ``msg`` (the reason text), ``branch`` (SP/HS_MAX/HS_MIN), T_m, T_c [K]; ``flag``
-    and ``flag_msg`` where a solved row's status is the solver's (not the limit checks')."""
+    and ``flag_msg`` where a solved row's status is the solver's (not the limit checks').
+
+    For warm starts of a later call (``model.vwarm``): ``T_c_sp`` [K], the condensing temperature
+    of the branch test at the set point (rows at an HS bound); ``in_branch``, ``in_T_m``,
+    ``in_T_c``: the solution at the input's T_source,out of a row whose LS floated (-1/NaN
+    elsewhere: there it is the row's solution)."""
 
     def __init__(self, n: int) -> None:
         self.code = np.full(n, "", dtype=object)
@@ -88,6 +93,14 @@ class Outcome:
         self.T_c = np.full(n, np.nan)
         self.flag = np.full(n, "", dtype=object)       # a solved row's status set by the solver
         self.flag_msg = np.full(n, "", dtype=object)
+        self.T_c_sp = np.full(n, np.nan)
+        self.in_branch = np.full(n, -1, dtype=np.int8)
+        self.in_T_m = np.full(n, np.nan)
+        self.in_T_c = np.full(n, np.nan)
+
+    def note_input(self, rows) -> None:
+        """The rows' present solution is their input point's (before their LS floats)."""
+        self.in_branch[rows], self.in_T_m[rows], self.in_T_c[rows] = self.branch[rows], self.T_m[rows], self.T_c[rows]
 
     def fail(self, rows, codes, msgs) -> None:
         for r, c, m in zip(rows, codes, msgs):
@@ -375,6 +388,7 @@ def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome,
     if len(test):
         # the branch test: the HS speed needed AT the set point
         T_c, n_sp = yield from tc.solve(test, T_m_sp[test], raised)
+        out.T_c_sp[idx[test]] = T_c
         up, down = n_sp > n_max + SPEED_TOL, n_sp < n_min - SPEED_TOL
         branch[test] = np.where(up, HS_MAX, np.where(down, HS_MIN, SP))
         lo[test] = np.where(down, T_e[test] + 0.05, T_m_sp[test])

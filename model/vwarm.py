@@ -1,0 +1,600 @@
+"""Warm starts of ``model.vcycle.solve_many``: every row from a nearby solved state of its own.
+
+A row's cold path (``model.vsolve``, ``model.vfloat``) follows the scalar solver step by step,
+35-60 sequential evaluation rounds for the hardest rows. From a nearby solution the root of the
+guessed branch is found directly, by Newton on all rows at once with finite-difference Jacobians
+(the point and one step per unknown in the same batched evaluation), and then the branch is verified
+the way the scalar solver decides it. The problems of a row (all in the same evaluation rounds):
+
+- ``input``: the solution at the input's T_source,out in the branch of the guess's input point:
+  "sp" (unknown T_c, T_m at the set point: condenser-zone residual r = 0) or an HS speed bound
+  (unknowns T_m, T_c: r = 0 and n_HS = bound);
+- ``set point`` (rows at an HS bound): T_c at the set point, the scalar's branch test: the HS speed
+  needed there must lie beyond the bound, and the point must solve there (an isentropic efficiency
+  outside (0.05, 1] at the set point fails the row cold: ``eta_out_of_range``);
+- ``float`` ("float" mode, the guess's LS floated): T_source,out with N_LS on the guess's bound
+  (plus T_c, and T_m at an HS bound);
+- ``first trial`` (floating rows from an "sp" input): one evaluation where the scalar LS search
+  makes its first trial, which can fail the search (``model.vfloat._first_trial``).
+
+A row leaves the warm path for the cold path (which may itself fall back to the scalar solver)
+when any evaluation of its problems raises (``E_*``: a compressor, table or order check), a step
+leaves the domain, a problem has not converged within ``WARM_ROUNDS`` rounds, or a check fails:
+
+- "sp": n_HS at the root within [n_min, n_max] (widened by SPEED_TOL), the set point above
+  1.001 p_e;
+- HS bound: the set-point problem solved with n_HS beyond the bound by more than SPEED_TOL, T_m in
+  the cold path's search interval (hs_max: T_m_sp .. T_c,sp - 0.1 K; hs_min: T_e + 0.05 K ..
+  T_m_sp; a set point at or below 1.001 p_e: hs_max in T_e + 0.05 K .. T_c,0 - 0.1 K);
+- T_c in the cold secant's range (above T_sink,in + 0.05 K and T_m + 0.05 K, at most T_c_max);
+- "float" mode: N_LS at the input within its range (the row does not float; from a floating guess
+  the input point is then the answer) or beyond it on the guess's side, with the floating root in
+  the scalar search's interval on that side (T_sp < T_so <= T_in - 0.05 K at N_max), its branch
+  consistent (n_HS in range at "sp"; T_m beyond the set point at a bound), and no failing first
+  trial where the scalar's search would make one.
+
+The roots are those of the cold path to its tolerances (ENERGY_TOL, SPEED_TOL; the LS bound to
+1e-11 in speed ratio as ``model.vfloat``). What the check cannot see: a cold path whose trial
+points fail although the root is valid (the scalar's outcome depends on its path there); near
+such rows the statuses may differ (tests/test_vcycle.py states the rule and checks it). SI units.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .cycle import ENERGY_TOL, SPEED_TOL
+from .vflowsheet import E_OK, Flowsheet
+from .vfloat import LS_TOL
+from .vsolve import HS_MAX, HS_MIN, SP
+from .vtasks import Eval, Spawn
+
+WARM_ROUNDS = 8          # Newton steps of a problem before its row goes cold
+MAX_ROUNDS = 16          # evaluation rounds of the warm path in all
+FD_STEP = 1e-3           # K, finite-difference step of every unknown
+STEP_MAX = 2.0           # K, the largest Newton step of any unknown
+IN, SPT, FLT = 1, 2, 3   # problem roles: input point, set-point test, floating point
+PROGRESS = 0.5           # a full Newton step must reduce the scaled residual at least by this factor
+PROGRESS_LIMITED = 0.9   # ... a step cut to STEP_MAX by this one
+HS_SCREEN = 0.01         # HS speed ratio margin of the screen of the cold path's start at an HS bound
+HS_OVERSHOOT = 3.0       # ... the largest overshoot of its first secant step, in its distance to the root
+_INV_TOL = 1.0 / np.array([LS_TOL, SPEED_TOL, ENERGY_TOL])
+# the evaluation outputs the assembly needs, kept per problem where it converges
+ASSEMBLY_KEYS = ("err", "h2", "h_g_m", "m_LS", "m_HS", "h4", "Q_SC", "Q_con", "Q_DSH", "T_w1", "T_w2",
+                 "T_SC", "T4", "cp_v", "n_LS", "n_HS", "p_m", "p_c", "eta_LS", "eta_HS", "ev_LS",
+                 "ev_HS", "h_SC", "h_f_c")
+INPUT_KEYS = ("T_si", "T_so_in", "T_ki", "V_s", "V_k")     # a row's operating point [K, m^3/s]
+STATE_KEYS = ("branch", "T_m", "T_c", "T_so", "ls_limit", "in_branch", "in_T_m", "in_T_c", "T_c_sp",
+              "n_LS", "n_HS", "d_SC", "dT_SC", "phi_HS") + INPUT_KEYS + ("T_m_sp",)
+
+
+def empty_state(n: int) -> dict:
+    """Per-row warm-start state (SI): the solution (branch -1 where none; ls_limit 1 at N_max, -1 at
+    N_min), the input point's solution where the LS floated, T_c of the branch test at the set
+    point, and the flowsheet's inner warm-start memory."""
+    st = {k: np.full(n, np.nan) for k in STATE_KEYS}
+    for k in ("branch", "in_branch", "ls_limit"):
+        st[k] = np.full(n, -1 if k != "ls_limit" else 0, dtype=np.int8)
+    return st
+
+
+def take_state(st: dict, gi) -> dict:
+    """The guess rows gi (-1: none) of a state."""
+    gi = np.asarray(gi, dtype=np.intp)
+    none = gi < 0
+    out = {k: v[np.where(none, 0, gi)] if len(v) else np.zeros(len(gi), v.dtype) for k, v in st.items()}
+    out["branch"][none] = -1
+    out["in_branch"][none] = -1
+    return out
+
+
+def usable(st: dict, ls_mode: str) -> np.ndarray:
+    """Rows of a state that can start a row warm."""
+    ok = (st["branch"] >= 0) & np.isfinite(st["T_c"]) & np.isfinite(st["T_m"])
+    if ls_mode == "float":
+        # a floating guess needs its input point; a non-floating one is its own input point
+        ok &= (st["ls_limit"] == 0) | (st["in_branch"] >= 0)
+    return ok
+
+
+def borrow(st: dict, gi, need, inputs: dict, T_m_sp, ls_mode: str) -> np.ndarray:
+    """``gi`` with the rows ``need`` (whose guess row has no usable solution) mapped to the usable
+    guess row of the same operating point (the INPUT_KEYS equal) whose set point lies nearest,
+    where there is one."""
+    gi = np.array(gi, copy=True)
+    need = np.flatnonzero(need)
+    donors = np.flatnonzero(usable(st, ls_mode))
+    if not len(need) or not len(donors):
+        return gi
+    keys = np.concatenate([np.stack([st[k][donors] for k in INPUT_KEYS], axis=1),
+                           np.stack([inputs[k][need] for k in INPUT_KEYS], axis=1)])
+    _, grp = np.unique(keys, axis=0, return_inverse=True)
+    grp = grp.ravel()
+    by = {}
+    for d, gk in zip(donors, grp[:len(donors)]):
+        by.setdefault(gk, []).append(d)
+    for i, gk in zip(need, grp[len(donors):]):
+        cand = by.get(gk)
+        if cand:
+            cand = np.asarray(cand)
+            gi[i] = cand[np.argmin(np.abs(st["T_m_sp"][cand] - T_m_sp[i]))]
+    return gi
+
+
+class WarmPlan:
+    """Which rows start warm, and the flowsheet rows their floating problems need beside their own:
+    in "float" mode three copies of every warm row (``extra``: the rows copied, appended after the
+    n rows): the floating point, its T_source,out step, the scalar search's first trial."""
+
+    def __init__(self, n: int, cand, g: dict, ls_mode: str) -> None:
+        self.n = n
+        self.rows = np.flatnonzero(cand & usable(g, ls_mode))
+        w = len(self.rows)
+        self.copies = ls_mode == "float"
+        self.extra = np.concatenate([self.rows] * 3) if self.copies else np.zeros(0, dtype=np.intp)
+        self.f_base = n + np.arange(w)
+        self.f_fd = n + w + np.arange(w)
+        self.f_x0 = n + 2 * w + np.arange(w)
+
+
+_PROBLEM_ARRAYS = ("own", "role", "src", "fso", "br", "has_m", "has_so", "T_m_fix", "bound", "n_b", "so_lo",
+                   "so_hi", "conv", "dead", "age", "fnorm", "full_step")
+_FLOATS = ("T_m_fix", "bound", "n_b", "so_lo", "so_hi", "fnorm")
+_BOOLS = ("has_m", "has_so", "conv", "dead", "full_step")
+
+
+class WarmSolve:
+    """The warm path for the rows of a ``WarmPlan`` on the flowsheet ``fs`` (whose rows n.. are the
+    plan's copies). ``task(go_cold)`` runs it (a ``model.vtasks`` task); ``go_cold(rows)`` gives the
+    cold task of rows that leave it. ``ok`` marks the rows (positions in the plan's rows) settled
+    here; ``results`` and ``fill_state`` give their answers.
+
+    A row's problems (module docstring) are rows of the problem arrays; a row points at its input
+    point (``p_in``), set-point test (``p_spt``) and floating point (``p_flt``) problems. A row whose
+    answer changes branch against its guess within what the checks see (an "sp" input whose HS speed
+    needs a bound, an HS-bound input whose set point turns out to hold, a floating point of the other
+    branch) continues warm with a new problem from the root at hand, once; a row that starts to
+    float gets its floating problem from the scalar search's first trial."""
+
+    def __init__(self, fs: Flowsheet, plan: WarmPlan, g: dict, T_m_sp, p_sp, T_c_max: float,
+                 ls_mode: str) -> None:
+        self.fs, self.plan, self.ls_mode, self.T_c_max = fs, plan, ls_mode, T_c_max
+        hs, ls = fs.par.comp_HS, fs.par.comp_LS
+        self.n_hs = (hs.N_min / hs.N_nom, hs.N_max / hs.N_nom)
+        self.n_ls = (ls.N_min / ls.N_nom, ls.N_max / ls.N_nom)
+        rows = plan.rows
+        w = len(rows)
+        self.w, self.rows = w, rows
+        self.T_m_sp = T_m_sp[rows]
+        self.below = p_sp[rows] <= fs.p_e[rows] * 1.001
+        self.T_sp, self.T_in = fs.T_so[rows].copy(), fs.T_si[rows]
+        # ---- per row
+        self.p_in, self.p_spt, self.p_flt = (np.full(w, -1) for _ in range(3))
+        self.lim = np.zeros(w, dtype=np.int8)       # floating problem's bound: +1 N_max, -1 N_min
+        self.x0 = np.full(w, np.nan)                # the scalar LS search's first trial [K]
+        self.x0_st = np.zeros(w, dtype=np.int8)     # 1 its check is to be evaluated, 2 evaluated
+        self.x0_risk = np.zeros(w, bool)
+        self.hs_st = np.zeros(w, dtype=np.int8)     # the HS-bound screen: 1 to be evaluated, 2 evaluated
+        self.hs_risk = np.zeros(w, bool)
+        self.hs_at = np.full((w, 2), np.nan)        # its point (T_m0, T_c0)
+        self.hs_n = np.full(w, np.nan)              # n_HS on the condensing curve at T_m0 (linearised)
+        self.hs_s = np.full(w, np.nan)              # ... its slope dn_HS/dT_m along the curve [1/K]
+        self.sw_in, self.sw_fl = np.zeros(w, bool), np.zeros(w, bool)   # branch switched once
+        self.decided, self.ok = np.zeros(w, bool), np.zeros(w, bool)
+        self.answer = np.full(w, -1)
+        self.rounds = 0
+        # ---- problems
+        self.X = np.zeros((0, 3))
+        self.Fc = np.zeros((0, 3))
+        self.s = {key: np.zeros(0) for key in ASSEMBLY_KEYS}
+        for name in _PROBLEM_ARRAYS:
+            setattr(self, name, np.zeros(0, dtype=float if name in _FLOATS else bool if name in _BOOLS else np.intp))
+        known = g["in_branch"][rows] >= 0
+        inb = np.where(known, g["in_branch"][rows], g["branch"][rows])
+        in_T_m = np.where(known, g["in_T_m"][rows], g["T_m"][rows])
+        in_T_c = np.where(known, g["in_T_c"][rows], g["T_c"][rows])
+        pos = np.arange(w)
+        self.p_in[:] = self._add(pos, IN, rows, inb, self.T_sp, np.where(inb != SP, in_T_m, self.T_m_sp), in_T_c)
+        spt = np.flatnonzero((inb != SP) & ~self.below)
+        T_c_sp = g["T_c_sp"][rows[spt]]
+        T_c_sp = np.where(np.isfinite(T_c_sp), T_c_sp, in_T_c[spt])
+        self.p_spt[spt] = self._add(spt, SPT, rows[spt], SP, self.T_sp[spt], self.T_m_sp[spt], T_c_sp)
+        hsp = np.flatnonzero(inb != SP)
+        est = in_T_c[hsp]
+        est[np.isin(hsp, spt)] = T_c_sp
+        self._hs_screen(hsp, inb[hsp], est)
+        if ls_mode == "float":
+            fpos = np.flatnonzero(g["ls_limit"][rows] != 0)
+            if len(fpos):
+                r = rows[fpos]
+                self.lim[fpos] = g["ls_limit"][r]
+                n_in = fs.ls_speed(r, self.T_m_sp[fpos])[0]      # at the input, T_m at the set point
+                self._first_trial(fpos, n_in)
+                fb = g["branch"][r]
+                self.p_flt[fpos] = self._add(fpos, FLT, plan.f_base[fpos], fb, g["T_so"][r],
+                                             np.where(fb != SP, g["T_m"][r], self.T_m_sp[fpos]), g["T_c"][r])
+
+    # ---------------------------------------------------------------------------------------------
+    def _add(self, own, role: int, src, br, T_so, T_m, T_c) -> np.ndarray:
+        """Append problems (one per row position in own); returns their indices."""
+        k = len(own)
+        br = np.broadcast_to(np.asarray(br, dtype=np.int8), (k,))
+        first = len(self.own)
+        lim = self.lim[own]
+        T_sp, T_in = self.T_sp[own], self.T_in[own]
+        flt = role == FLT
+        so_lo = np.where(lim > 0, T_sp, np.maximum(T_sp - 15.0, self.fs.tab.T_triple + 5.0)) if flt else np.full(k, -np.inf)
+        so_hi = np.where(lim > 0, T_in - 0.05, T_sp) if flt else np.full(k, np.inf)
+        new = dict(own=own, role=np.full(k, role), src=src, fso=self.plan.f_fd[own] if flt else np.full(k, -1),
+                   br=br, has_m=br != SP, has_so=np.full(k, flt), T_m_fix=self.T_m_sp[own],
+                   bound=np.where(br == HS_MAX, self.n_hs[1], np.where(br == HS_MIN, self.n_hs[0], np.nan)),
+                   n_b=np.where(lim > 0, self.n_ls[1], self.n_ls[0]) if flt else np.full(k, np.nan),
+                   so_lo=so_lo, so_hi=so_hi, conv=np.zeros(k, bool), dead=np.zeros(k, bool),
+                   age=np.zeros(k, dtype=np.intp), fnorm=np.full(k, np.inf), full_step=np.zeros(k, bool))
+        for name in _PROBLEM_ARRAYS:
+            setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
+        X = np.stack([np.minimum(np.maximum(T_so, so_lo), so_hi), T_m, T_c], axis=1)
+        X = np.broadcast_to(X, (k, 3))
+        self.X = np.concatenate([self.X, X])
+        self.Fc = np.concatenate([self.Fc, np.full((k, 3), np.nan)])
+        for key in ASSEMBLY_KEYS:
+            self.s[key] = np.concatenate([self.s[key], np.full(k, np.nan)])
+        # a start outside the domain fails at once
+        bad = ~(np.all(np.isfinite(X), axis=1) & (X[:, 2] <= self.T_c_max) & (X[:, 1] < X[:, 2] - 0.05))
+        self.dead[first + np.flatnonzero(bad)] = True
+        return first + np.arange(k)
+
+    def _first_trial(self, pos, n_in) -> None:
+        """The scalar LS search's first trial x0 of the rows pos (LS speed ratio n_in at the input,
+        toward their ``lim``), to be checked in the next round."""
+        lim = self.lim[pos]
+        T_sp, T_in = self.T_sp[pos], self.T_in[pos]
+        n_b = np.where(lim > 0, self.n_ls[1], self.n_ls[0])
+        lo = np.where(lim > 0, T_sp, np.maximum(T_sp - 15.0, self.fs.tab.T_triple + 5.0))
+        hi = np.where(lim > 0, T_in - 0.05, T_sp)
+        x0 = np.minimum(np.maximum(T_in - (T_in - T_sp) * n_b / n_in, lo), hi)
+        self.x0[pos] = x0
+        ok = np.isfinite(x0)
+        self.x0_st[pos] = np.where(ok, 1, 2)
+        self.x0_risk[pos] = ~ok
+        if ok.any():
+            self.fs.set_source(self.plan.f_x0[pos[ok]], x0[ok])
+
+    def _hs_screen(self, pos, br, T_c_sp) -> None:
+        """Schedule the screen of the cold path's search at an HS bound for the rows pos (branch br;
+        T_c_sp [K]: the branch test's condensing temperature, or an estimate): the joint Newton
+        (``model.vsolve.bound_newton``) starts in the middle of the T_m interval, and where it gives
+        up the nested secants start there too, each T_m trial solving T_c. Far from the root, the
+        cold path fails where its start does: an evaluation there raises (an isentropic efficiency
+        out of range), or the condensing zone cannot carry the duty even at T_c_max (p_c_high). Those
+        rows go cold; the screen evaluates (T_m0, T_c0) and (T_m0, T_c_max)."""
+        fs = self.fs
+        rows = self.rows[pos]
+        T_m_sp, below = self.T_m_sp[pos], self.below[pos]
+        T_e = fs.T_e[rows]
+        T_c0 = fs.T_ki[rows] + 1.3 * fs.Q_s[rows] / fs.C_w[rows] + 3.0
+        lo = np.where(below | (br == HS_MIN), T_e + 0.05, T_m_sp)
+        hi = np.where(below, T_c0 - 0.1, np.where(br == HS_MIN, T_m_sp, T_c_sp - 0.1))
+        T_m0 = np.where((lo < T_m_sp) & (T_m_sp < hi), T_m_sp, 0.5 * (lo + hi))
+        self.hs_at[pos, 0] = T_m0
+        self.hs_at[pos, 1] = np.where(below, T_c0, T_c_sp)
+        self.hs_st[pos] = 1
+
+    # ---------------------------------------------------------------------------------------------
+    def task(self, go_cold):
+        fs = self.fs
+        h = FD_STEP
+        for it in range(MAX_ROUNDS):
+            act = np.flatnonzero(~(self.conv | self.dead))
+            chk = np.flatnonzero(self.x0_st == 1)
+            if not len(act) and not len(chk) and not (self.hs_st == 1).any():
+                break
+            self.rounds = it + 1
+            X = self.X
+            so = act[self.has_so[act]]
+            if len(so):
+                fs.set_source(self.src[so], X[so, 0])
+                fs.set_source(self.fso[so], X[so, 0] + h)
+            am = act[self.has_m[act]]
+            T_m = np.where(self.has_m, X[:, 1], self.T_m_fix)
+            k, km, ks = len(act), len(am), len(so)
+            who = np.concatenate([act, act, am, so])
+            fx0 = self.plan.f_x0[chk] if len(chk) else np.zeros(0, dtype=np.intp)
+            T_m0 = self.T_m_sp[chk]
+            hsc = np.flatnonzero(self.hs_st == 1)
+            hr, hm, hc = self.rows[hsc], self.hs_at[hsc, 0], self.hs_at[hsc, 1]
+            ev = yield Eval(fs, np.concatenate([self.src[act], self.src[act], self.src[am], self.fso[so], fx0,
+                                                hr, hr, hr, hr]),
+                            np.concatenate([T_m[act], T_m[act], T_m[am] + h, T_m[so], T_m0, hm, hm, hm + h, hm]),
+                            np.concatenate([X[act, 2], X[act, 2] + h, X[am, 2], X[so, 2],
+                                            np.maximum(fs.T_ki[fx0] + 0.05, T_m0 + 0.05), hc, hc + h, hc,
+                                            np.full(len(hsc), self.T_c_max)]), full=True)
+            err, r, n_HS, n_LS = ev["err"], ev["r"], ev["n_HS"], ev["n_LS"]
+            e0 = len(who)
+            if len(chk):
+                e1 = e0 + len(chk)
+                self.x0_risk[chk] = (err[e0:e1] != E_OK) | ~(r[e0:e1] <= 0.0)
+                self.x0_st[chk] = 2
+            if len(hsc):
+                a, b, c, d = (slice(e0 + len(chk) + j * len(hsc), e0 + len(chk) + (j + 1) * len(hsc)) for j in range(4))
+                r_c, n_c = (r[b] - r[a]) / h, (n_HS[b] - n_HS[a]) / h
+                r_m, n_m = (r[c] - r[a]) / h, (n_HS[c] - n_HS[a]) / h
+                self.hs_n[hsc] = n_HS[a] - n_c * r[a] / r_c          # on the curve r = 0 at T_m0
+                self.hs_s[hsc] = n_m - n_c * r_m / r_c               # its slope along the curve
+                self.hs_risk[hsc] = ((err[a] != E_OK) | (err[b] != E_OK) | (err[c] != E_OK) | (err[d] != E_OK)
+                                     | ~(r[d] >= 0.0) | ~(r_c > 0.0) | ~np.isfinite(self.hs_n[hsc] + self.hs_s[hsc]))
+                self.hs_st[hsc] = 2
+            if k:
+                self._newton(act, am, so, who, err[:e0], r[:e0], n_HS[:e0], n_LS[:e0], ev)
+            yield from self._decide(go_cold)
+        yield from self._decide(go_cold, final=True)
+
+    def _newton(self, act, am, so, who, err, r, n_HS, n_LS, ev) -> None:
+        """One Newton step of the active problems from their evaluation (the point, then the
+        finite-difference steps in T_c, T_m, T_source,out); converged problems keep their outputs."""
+        h = FD_STEP
+        k, km, ks = len(act), len(am), len(so)
+        F = np.stack([np.where(self.has_so[who], n_LS - self.n_b[who], 0.0),
+                      np.where(self.has_m[who], n_HS - self.bound[who], 0.0), r], axis=1)
+        F0 = F[:k]
+        good = err[:k] == E_OK
+        fn = np.max(np.abs(F0) * _INV_TOL, axis=1)
+        conv = good & (fn < 1.0)
+        # Newton from a nearby root converges quadratically: a full step that does not halve the
+        # residual (scaled by the tolerances) says the start is not near a root of this branch
+        good &= fn <= np.where(self.full_step[act], PROGRESS, PROGRESS_LIMITED) * self.fnorm[act]
+        self.fnorm[act] = fn
+        c = act[conv]
+        if len(c):
+            self.conv[c] = True
+            self.Fc[c] = F0[conv]
+            for key in ASSEMBLY_KEYS:
+                self.s[key][c] = ev[key][:k][conv]
+        J = np.zeros((k, 3, 3))
+        J[:, :, 2] = (F[k:2 * k] - F0) / h
+        bad = ~good | (err[k:2 * k] != E_OK)
+        pm = np.flatnonzero(self.has_m[act])
+        J[pm, :, 1] = (F[2 * k:2 * k + km] - F0[pm]) / h
+        bad[pm] |= err[2 * k:2 * k + km] != E_OK
+        ps = np.flatnonzero(self.has_so[act])
+        J[ps, :, 0] = (F[2 * k + km:] - F0[ps]) / h
+        bad[ps] |= err[2 * k + km:] != E_OK
+        J[~self.has_m[act], 1, 1] = 1.0
+        J[~self.has_so[act], 0, 0] = 1.0
+        go = ~conv & ~bad & np.all(np.isfinite(J.reshape(k, 9)), axis=1) & np.all(np.isfinite(F0), axis=1)
+        gi = np.flatnonzero(go)
+        dead = act[~conv & ~go]
+        if len(gi):
+            Jg = J[gi]
+            det = np.linalg.det(Jg)
+            sing = ~((det != 0.0) & np.isfinite(det))
+            if sing.any():
+                dead = np.concatenate([dead, act[gi[sing]]])
+                gi, Jg = gi[~sing], Jg[~sing]
+        if len(gi):
+            dX = -np.linalg.solve(Jg, F0[gi][:, :, None])[:, :, 0]
+            big = np.max(np.abs(dX), axis=1)
+            dX *= np.minimum(1.0, STEP_MAX / np.maximum(big, 1e-300))[:, None]
+            p = act[gi]
+            self.full_step[p] = big <= STEP_MAX
+            Xn = self.X[p] + dX
+            inside = (np.all(np.isfinite(Xn), axis=1) & (Xn[:, 2] <= self.T_c_max)
+                      & (Xn[:, 2] > self.fs.T_ki[self.src[p]] + 0.05) & (Xn[:, 1] < Xn[:, 2] - 0.05)
+                      & (Xn[:, 0] > self.so_lo[p]) & (Xn[:, 0] <= self.so_hi[p]))
+            self.X[p[inside]] = Xn[inside]
+            dead = np.concatenate([dead, p[~inside]])
+            self.age[p] += 1
+            dead = np.concatenate([dead, p[self.age[p] >= WARM_ROUNDS]])
+        self.dead[dead] = True
+
+    # ---------------------------------------------------------------------------------------------
+    def _decide(self, go_cold, final: bool = False):
+        """Settle the rows whose problems allow it (the answer where every check passes, the cold
+        path, a task started beside this one, where one fails); start the problems of rows that
+        change branch or start to float."""
+        back = []
+        for _ in range(4):
+            und = np.flatnonzero(~self.decided)
+            p1 = self.p_in[und]
+            und = und[self.conv[p1] | self.dead[p1]]
+            if not len(und) or not self._settle(und, back):
+                break
+        if final:
+            rest = np.flatnonzero(~self.decided)
+            self.decided[rest] = True
+            back.append(rest)
+        if back:
+            b = np.concatenate(back)
+            if len(b):
+                for p in (self.p_in[b], self.p_spt[b], self.p_flt[b]):
+                    p = p[p >= 0]
+                    self.dead[p[~self.conv[p]]] = True
+                yield Spawn(go_cold(self.rows[b]))
+
+    def _settle(self, und, back: list) -> bool:
+        """One pass over the rows und (their input problem finished): returns whether a row changed
+        its problems (another pass may settle it)."""
+        fs, X, s = self.fs, self.X, self.s
+        n_lo, n_hi = self.n_hs
+        rows, below, T_m_sp = self.rows[und], self.below[und], self.T_m_sp[und]
+        p1 = self.p_in[und]
+        cold = self.dead[p1].copy()
+        c1 = self.conv[p1]
+        br1 = self.br[p1]
+        T_m, T_c = X[p1, 1], X[p1, 2]
+        nHS = s["n_HS"][p1]
+        inr = (nHS >= n_lo - SPEED_TOL) & (nHS <= n_hi + SPEED_TOL)
+        up, dn = nHS > n_hi + SPEED_TOL, nHS < n_lo - SPEED_TOL
+        T_ki = fs.T_ki[rows]
+        span = (T_c > T_ki + 0.05) & (T_c > T_m + 0.05) & (T_c <= self.T_c_max)
+        ok_in = np.zeros(len(und), bool)
+        changed = False
+        # ---- input point "sp": the HS speed within its range; else the HS runs at a bound
+        spi = c1 & (br1 == SP)
+        ok_in |= spi & inr & ~below & span
+        sw = spi & (up | dn) & ~below & span & ~self.sw_in[und]
+        cold |= spi & ~(inr & ~below & span) & ~sw
+        if sw.any():
+            j = np.flatnonzero(sw)
+            u = und[j]
+            self.sw_in[u] = True
+            self.p_spt[u] = p1[j]              # its root is the branch test at the set point
+            nb = np.where(up[j], HS_MAX, HS_MIN).astype(np.int8)
+            self.p_in[u] = self._add(u, IN, rows[j], nb, self.T_sp[u], T_m_sp[j], T_c[j])
+            self._hs_screen(u, nb, T_c[j])
+            changed = True
+        # ---- input point at an HS bound: the branch test at the set point, the cold path's interval
+        hsi = c1 & (br1 != SP)
+        p2 = self.p_spt[und]
+        has2 = p2 >= 0
+        q2 = np.maximum(p2, 0)
+        c2, d2 = has2 & self.conv[q2], has2 & self.dead[q2]
+        need = hsi & ~below
+        cold |= need & (~has2 | d2)
+        r2 = need & c2
+        n_sp = s["n_HS"][q2]
+        T_c_sp = X[q2, 2]
+        cons = r2 & np.where(br1 == HS_MAX, n_sp > n_hi + SPEED_TOL, n_sp < n_lo - SPEED_TOL)
+        in2 = (n_sp >= n_lo - SPEED_TOL) & (n_sp <= n_hi + SPEED_TOL)
+        tosp = r2 & in2 & ~self.sw_in[und]
+        cold |= r2 & ~(cons | tosp)
+        if tosp.any():
+            u = und[tosp]
+            self.sw_in[u] = True
+            self.dead[p1[tosp][~self.conv[p1[tosp]]]] = True
+            self.p_in[u], self.p_spt[u] = p2[tosp], -1       # the set point holds: "sp"
+            changed = True
+        T_e = fs.T_e[rows]
+        T_c0 = T_ki + 1.3 * fs.Q_s[rows] / fs.C_w[rows] + 3.0
+        hmax, hmin = br1 == HS_MAX, br1 == HS_MIN
+        interval = np.where(below, hmax & (T_m >= T_e + 0.05) & (T_m <= T_c0 - 0.1),
+                            np.where(hmax, (T_m >= T_m_sp) & (T_m <= T_c_sp - 0.1),
+                                     (T_m >= T_e + 0.05) & (T_m <= T_m_sp)))
+        ready = hsi & (below | cons)
+        hs_st = self.hs_st[und]
+        ready &= hs_st == 2                    # the screen of the cold path's start evaluated
+        # the HS speed needed falls as T_m rises: at the cold path's start it must lie on the side of
+        # the bound that T_m0 lies on against the root, clearly (else a second root may lie between)
+        # and falling there too, steeply enough that a secant step from there (the nested search's
+        # first, linearised) lands short of the root or beyond it by less than HS_OVERSHOOT times its
+        # distance (where the curve flattens the cold search jumps away and fails on its way)
+        T_m0 = self.hs_at[und, 0]
+        dn = self.hs_n[und] - self.bound[p1]
+        side = dn * (T_m0 - T_m)
+        T_m1 = T_m0 - dn / self.hs_s[und]
+        screen = ~self.hs_risk[und] & (((side < 0.0) & (np.abs(dn) > HS_SCREEN) & (self.hs_s[und] < 0.0)
+                                        & (np.abs(T_m1 - T_m) < HS_OVERSHOOT * np.abs(T_m0 - T_m)))
+                                       | (np.abs(T_m0 - T_m) < 1e-3))
+        ok_in |= ready & interval & span & screen
+        cold |= ready & ~(interval & span & screen)
+        ok_in &= ~cold
+        # ---- the answer: the input point, or in "float" mode the floating point
+        if self.ls_mode != "float":
+            self._answer(und[ok_in], p1[ok_in])
+        elif ok_in.any():
+            changed |= self._settle_float(und[ok_in], p1[ok_in], back)
+        if cold.any():
+            u = und[cold]
+            self.decided[u] = True
+            back.append(u)
+        return changed
+
+    def _answer(self, u, p) -> None:
+        self.decided[u] = True
+        self.ok[u] = True
+        self.answer[u] = p
+        q = self.p_flt[u]
+        q = q[(q >= 0) & (q != p)]
+        self.dead[q[~self.conv[q]]] = True              # the floating problem is not needed
+
+    def _settle_float(self, und, p1, back: list) -> bool:
+        """Rows und whose input point p1 passed its checks, in "float" mode: the input point is the
+        answer where N_LS lies within its range, else the floating point toward the violated bound
+        once it has converged and passed its checks."""
+        fs, X, s = self.fs, self.X, self.s
+        l_lo, l_hi = self.n_ls
+        n_LS = s["n_LS"][p1]
+        inr = (n_LS >= l_lo) & (n_LS <= l_hi)
+        self._answer(und[inr], p1[inr])
+        und, p1, n_LS = und[~inr], p1[~inr], n_LS[~inr]
+        if not len(und):
+            return False
+        L = np.where(n_LS > l_hi, 1, -1).astype(np.int8)
+        pf = self.p_flt[und]
+        cold = (pf >= 0) & (self.lim[und] != L)
+        new = pf < 0
+        changed = False
+        if new.any():
+            j = np.flatnonzero(new)
+            u = und[j]
+            self.lim[u] = L[j]
+            self._first_trial(u, n_LS[j])
+            q = p1[j]
+            self.p_flt[u] = self._add(u, FLT, self.plan.f_base[u], self.br[q], self.x0[u], X[q, 1], X[q, 2])
+            changed = True
+        have = (pf >= 0) & ~cold
+        q = np.maximum(pf, 0)
+        cold |= have & self.dead[q]
+        cf = have & self.conv[q]
+        if cf.any():
+            j = np.flatnonzero(cf)
+            u, q = und[j], pf[j]
+            T_so, T_m = X[q, 0], X[q, 1]
+            inside = (T_so > self.so_lo[q]) & (T_so <= self.so_hi[q])
+            br = self.br[q]
+            n_lo, n_hi = self.n_hs
+            nHS = s["n_HS"][q]
+            T_m_sp = self.T_m_sp[u]
+            cons = np.where(br == SP, (nHS >= n_lo - SPEED_TOL) & (nHS <= n_hi + SPEED_TOL),
+                            np.where(br == HS_MAX, T_m > T_m_sp + 1e-6, T_m < T_m_sp))
+            # the other branch at the floating point, once (as the cold path's second pass)
+            sw = inside & ~cons & ~self.sw_fl[u]
+            bad = ~inside | (~cons & ~sw)
+            if sw.any():
+                k = np.flatnonzero(sw)
+                uk, qk = u[k], q[k]
+                nb = np.where(br[k] != SP, SP, np.where(nHS[k] > n_hi, HS_MAX, HS_MIN))
+                self.sw_fl[uk] = True
+                self.p_flt[uk] = self._add(uk, FLT, self.plan.f_base[uk], nb, X[qk, 0],
+                                           np.where(nb == SP, T_m_sp[k], X[qk, 1]), X[qk, 2])
+                changed = True
+            # the first trial: from an "sp" input it lies beyond the root where the search would fail
+            x0 = self.x0[u]
+            lim = self.lim[u]
+            beyond = np.where(lim > 0, x0 > T_so + 1e-9, x0 < T_so - 1e-9)
+            risky = (self.br[self.p_in[u]] == SP) & beyond
+            bad |= risky & self.x0_risk[u] & (self.x0_st[u] == 2)
+            wait = risky & (self.x0_st[u] == 1)
+            good = ~bad & ~sw & ~wait
+            self._answer(u[good], q[good])
+            cold[j[bad]] = True
+        if cold.any():
+            u = und[cold]
+            self.decided[u] = True
+            back.append(u)
+        return changed
+
+    # ---------------------------------------------------------------------------------------------
+    def _lim_of(self, pos) -> np.ndarray:
+        """+1/-1 where the answer of the rows pos is a floating point at N_max/N_min, else 0."""
+        return np.where(self.role[self.answer[pos]] == FLT, self.lim[pos], 0).astype(np.int8)
+
+    def results(self, pos):
+        """(flowsheet rows, T_m, T_c, branch, ls limit, evaluation outputs) of the answers of the
+        settled rows pos (positions in the plan's rows)."""
+        p = self.answer[pos]
+        return (self.src[p], self.X[p, 1], self.X[p, 2], self.br[p], self._lim_of(pos),
+                {k: v[p] for k, v in self.s.items()})
+
+    def fill_state(self, pos, state: dict) -> None:
+        """The warm-start state of the settled rows pos into ``state`` (indexed by row)."""
+        fs = self.fs
+        rows = self.rows[pos]
+        p, p1, p2 = self.answer[pos], self.p_in[pos], self.p_spt[pos]
+        state["branch"][rows] = self.br[p]
+        state["T_m"][rows], state["T_c"][rows], state["T_so"][rows] = self.X[p, 1], self.X[p, 2], fs.T_so[self.src[p]]
+        state["ls_limit"][rows] = self._lim_of(pos)
+        state["in_branch"][rows] = self.br[p1]
+        state["in_T_m"][rows], state["in_T_c"][rows] = self.X[p1, 1], self.X[p1, 2]
+        state["T_c_sp"][rows] = np.where(p2 >= 0, self.X[np.maximum(p2, 0), 2], self.X[p1, 2])
+        for k in ("n_LS", "n_HS", "d_SC", "dT_SC", "phi_HS"):
+            state[k][rows] = getattr(fs, k)[self.src[p]]

@@ -301,7 +301,7 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
             if lost.any():
                 gi = borrow(guess.state, gi, lost, inputs, T_m_sp, ls_mode)
                 g = take_state(guess.state, gi)
-            plan = WarmPlan(n, cand, g, ls_mode)
+            plan = WarmPlan(n, cand, g, ls_mode, lost)
             if len(plan.rows):
                 fs.append(plan.extra)
                 _seed_memory(fs, plan, g)
@@ -328,6 +328,11 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
         _cold_state(fs, solved, out, ls_limit, state)
     branch = np.array(["", "sp", "hs_max", "hs_min"], dtype=object)[np.where(
         cold & (status == "") & ~fallback, out.branch + 1, 0)]
+    if ws is not None and ws.failed.any():
+        # rows whose cold branch test (run on the warm path for rows without a usable guess) failed
+        f = np.flatnonzero(ws.failed)
+        r = ws.rows[f]
+        status[r], reason[r], cold[r] = ws.fail_code[f], ws.fail_msg[f], True
     if ws is not None and ws.ok.any():
         pos = np.flatnonzero(ws.ok)
         dst = ws.plan.rows[pos]

@@ -42,10 +42,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cycle import ENERGY_TOL, SPEED_TOL
-from .vflowsheet import E_OK, Flowsheet
-from .vfloat import LS_TOL
-from .vsolve import HS_MAX, HS_MIN, SP
+from .cycle import ENERGY_TOL, LS_SPEED_TOL, OVERLOAD, SPEED_TOL
+from .vflowsheet import E_OK, Flowsheet, MSide
+from .vsolve import HS_MAX, HS_MIN, SP, Raised, TcSolver
 from .vtasks import Eval, Spawn
 
 WARM_ROUNDS = 8          # Newton steps of a problem before its row goes cold
@@ -57,7 +56,9 @@ PROGRESS = 0.5           # a full Newton step must reduce the scaled residual at
 PROGRESS_LIMITED = 0.9   # ... a step cut to STEP_MAX by this one
 HS_SCREEN = 0.01         # HS speed ratio margin of the screen of the cold path's start at an HS bound
 HS_OVERSHOOT = 3.0       # ... the largest overshoot of its first secant step, in its distance to the root
-_INV_TOL = 1.0 / np.array([LS_TOL, SPEED_TOL, ENERGY_TOL])
+SPT_TOL = 1e-7           # condenser residual of the set-point test where its HS speed is clear of the
+SPT_MARGIN = 1e-4        # bounds by this (speed ratio; its error there is ~1e-8)
+WARM_LS_TOL = 0.1 * LS_SPEED_TOL   # the LS speed ratio on its bound (T_source,out to ~1e-7 K)
 # the evaluation outputs the assembly needs, kept per problem where it converges
 ASSEMBLY_KEYS = ("err", "h2", "h_g_m", "m_LS", "m_HS", "h4", "Q_SC", "Q_con", "Q_DSH", "T_w1", "T_w2",
                  "T_SC", "T4", "cp_v", "n_LS", "n_HS", "p_m", "p_c", "eta_LS", "eta_HS", "ev_LS",
@@ -105,18 +106,14 @@ def borrow(st: dict, gi, need, inputs: dict, T_m_sp, ls_mode: str) -> np.ndarray
     donors = np.flatnonzero(usable(st, ls_mode))
     if not len(need) or not len(donors):
         return gi
-    keys = np.concatenate([np.stack([st[k][donors] for k in INPUT_KEYS], axis=1),
-                           np.stack([inputs[k][need] for k in INPUT_KEYS], axis=1)])
-    _, grp = np.unique(keys, axis=0, return_inverse=True)
-    grp = grp.ravel()
-    by = {}
-    for d, gk in zip(donors, grp[:len(donors)]):
-        by.setdefault(gk, []).append(d)
-    for i, gk in zip(need, grp[len(donors):]):
-        cand = by.get(gk)
-        if cand:
-            cand = np.asarray(cand)
-            gi[i] = cand[np.argmin(np.abs(st["T_m_sp"][cand] - T_m_sp[i]))]
+    D = np.stack([st[k][donors] for k in INPUT_KEYS], axis=1)
+    N = np.stack([inputs[k][need] for k in INPUT_KEYS], axis=1)
+    for a in range(0, len(need), 256):                       # (need x donors) at a time
+        same = np.all(N[a:a + 256, None, :] == D[None, :, :], axis=2)
+        dist = np.where(same, np.abs(st["T_m_sp"][donors][None, :] - T_m_sp[need[a:a + 256], None]), np.inf)
+        j = np.argmin(dist, axis=1)
+        has = np.isfinite(dist[np.arange(len(j)), j])
+        gi[need[a:a + 256][has]] = donors[j[has]]
     return gi
 
 
@@ -125,9 +122,10 @@ class WarmPlan:
     in "float" mode three copies of every warm row (``extra``: the rows copied, appended after the
     n rows): the floating point, its T_source,out step, the scalar search's first trial."""
 
-    def __init__(self, n: int, cand, g: dict, ls_mode: str) -> None:
+    def __init__(self, n: int, cand, g: dict, ls_mode: str, borrowed=None) -> None:
         self.n = n
         self.rows = np.flatnonzero(cand & usable(g, ls_mode))
+        self.borrowed = np.zeros(len(self.rows), bool) if borrowed is None else np.asarray(borrowed)[self.rows]
         w = len(self.rows)
         self.copies = ls_mode == "float"
         self.extra = np.concatenate([self.rows] * 3) if self.copies else np.zeros(0, dtype=np.intp)
@@ -137,9 +135,9 @@ class WarmPlan:
 
 
 _PROBLEM_ARRAYS = ("own", "role", "src", "fso", "br", "has_m", "has_so", "T_m_fix", "bound", "n_b", "so_lo",
-                   "so_hi", "conv", "dead", "age", "fnorm", "full_step")
-_FLOATS = ("T_m_fix", "bound", "n_b", "so_lo", "so_hi", "fnorm")
-_BOOLS = ("has_m", "has_so", "conv", "dead", "full_step")
+                   "so_hi", "conv", "dead", "age", "fnorm", "full_step", "ms_ok", "n_HS", "n_LS", "s_ev", "s_j")
+_FLOATS = ("T_m_fix", "bound", "n_b", "so_lo", "so_hi", "fnorm", "n_HS", "n_LS")
+_BOOLS = ("has_m", "has_so", "conv", "dead", "full_step", "ms_ok")
 
 
 class WarmSolve:
@@ -178,70 +176,160 @@ class WarmSolve:
         self.hs_at = np.full((w, 2), np.nan)        # its point (T_m0, T_c0)
         self.hs_n = np.full(w, np.nan)              # n_HS on the condensing curve at T_m0 (linearised)
         self.hs_s = np.full(w, np.nan)              # ... its slope dn_HS/dT_m along the curve [1/K]
+        self.msc = np.zeros((len(MSide.KEYS), 0))   # the intermediate side of problems that keep it
         self.sw_in, self.sw_fl = np.zeros(w, bool), np.zeros(w, bool)   # branch switched once
         self.decided, self.ok = np.zeros(w, bool), np.zeros(w, bool)
+        self.touched = np.zeros(w, bool)            # rows with news since they were last looked at
         self.answer = np.full(w, -1)
         self.rounds = 0
-        # ---- problems
-        self.X = np.zeros((0, 3))
-        self.Fc = np.zeros((0, 3))
-        self.s = {key: np.zeros(0) for key in ASSEMBLY_KEYS}
-        for name in _PROBLEM_ARRAYS:
-            setattr(self, name, np.zeros(0, dtype=float if name in _FLOATS else bool if name in _BOOLS else np.intp))
+        # ---- problems: arrays with room for more (slots beyond ``self.n_prob`` are dead)
+        self.n_prob = 0
+        self._grow(4 * w + 16)
+        self.evs: list = []                        # the evaluations where problems converged
         known = g["in_branch"][rows] >= 0
         inb = np.where(known, g["in_branch"][rows], g["branch"][rows])
         in_T_m = np.where(known, g["in_T_m"][rows], g["T_m"][rows])
         in_T_c = np.where(known, g["in_T_c"][rows], g["T_c"][rows])
         pos = np.arange(w)
-        self.p_in[:] = self._add(pos, IN, rows, inb, self.T_sp, np.where(inb != SP, in_T_m, self.T_m_sp), in_T_c)
-        spt = np.flatnonzero((inb != SP) & ~self.below)
+        # borrowed rows (their own guess had no solution) take the cold path's exact branch test
+        self.bt_st = np.where(plan.borrowed & ~self.below, 1, 0).astype(np.int8)
+        self.bt_n, self.bt_T_c = np.full(w, np.nan), np.full(w, np.nan)
+        self.bt_cls = np.zeros(w, dtype=np.int8)
+        self.bt_code, self.bt_msg = np.full(w, "", dtype=object), np.full(w, "", dtype=object)
+        self.t_n, self.t_T_c = np.full(w, np.nan), np.full(w, np.nan)     # the set-point test's outcome
+        self.failed = np.zeros(w, bool)            # rows whose (exact) cold branch test failed
+        self.fail_code, self.fail_msg = np.full(w, "", dtype=object), np.full(w, "", dtype=object)
+        # the input points, and the set-point problems of those at an HS bound
+        spt = np.flatnonzero((inb != SP) & ~self.below & (self.bt_st == 0))
         T_c_sp = g["T_c_sp"][rows[spt]]
         T_c_sp = np.where(np.isfinite(T_c_sp), T_c_sp, in_T_c[spt])
-        self.p_spt[spt] = self._add(spt, SPT, rows[spt], SP, self.T_sp[spt], self.T_m_sp[spt], T_c_sp)
+        both = np.concatenate([pos, spt])
+        p = self._add(both, np.concatenate([np.full(w, IN), np.full(len(spt), SPT)]), rows[both],
+                      np.concatenate([inb, np.full(len(spt), SP)]), self.T_sp[both],
+                      np.concatenate([np.where(inb != SP, in_T_m, self.T_m_sp), self.T_m_sp[spt]]),
+                      np.concatenate([in_T_c, T_c_sp]))
+        self.p_in[:], self.p_spt[spt] = p[:w], p[w:]
         hsp = np.flatnonzero(inb != SP)
-        est = in_T_c[hsp]
+        est = in_T_c[hsp].copy()
         est[np.isin(hsp, spt)] = T_c_sp
         self._hs_screen(hsp, inb[hsp], est)
         if ls_mode == "float":
-            fpos = np.flatnonzero(g["ls_limit"][rows] != 0)
-            if len(fpos):
-                r = rows[fpos]
-                self.lim[fpos] = g["ls_limit"][r]
-                n_in = fs.ls_speed(r, self.T_m_sp[fpos])[0]      # at the input, T_m at the set point
-                self._first_trial(fpos, n_in)
-                fb = g["branch"][r]
-                self.p_flt[fpos] = self._add(fpos, FLT, plan.f_base[fpos], fb, g["T_so"][r],
-                                             np.where(fb != SP, g["T_m"][r], self.T_m_sp[fpos]), g["T_c"][r])
+            # floating guesses, and rows whose guess did not float but whose input point ("sp")
+            # has its LS speed beyond a bound already: their floating problems start now, beside
+            # the input points' (from the guess's floating point, or the scalar search's first trial)
+            lim_g = g["ls_limit"][rows]
+            cand = np.flatnonzero((lim_g != 0) | ((inb == SP) & ~self.below))
+            if len(cand):
+                n_in = fs.ls_speed(rows[cand], self.T_m_sp[cand])[0]     # at the input, T_m at the set point
+                l_lo, l_hi = self.n_ls
+                was = lim_g[cand] != 0
+                take = was | (n_in > l_hi) | (n_in < l_lo)
+                u, r = cand[take], rows[cand[take]]
+                was, n_in = was[take], n_in[take]
+                self.lim[u] = np.where(was, lim_g[u], np.where(n_in > l_hi, 1, -1))
+                self._first_trial(u, n_in)
+                fb = np.where(was, g["branch"][r], SP)
+                self.p_flt[u] = self._add_float(u, fb, np.where(was, g["T_so"][r], self.x0[u]),
+                                                np.where(fb != SP, g["T_m"][r], self.T_m_sp[u]),
+                                                np.where(was, g["T_c"][r], in_T_c[u]))
 
     # ---------------------------------------------------------------------------------------------
-    def _add(self, own, role: int, src, br, T_so, T_m, T_c) -> np.ndarray:
-        """Append problems (one per row position in own); returns their indices."""
+    def _grow(self, cap: int) -> None:
+        """Room for cap problems."""
+        n = self.n_prob
+        for name in _PROBLEM_ARRAYS:
+            a = np.zeros(cap, dtype=float if name in _FLOATS else bool if name in _BOOLS else np.intp)
+            if name == "dead":
+                a[:] = True
+            if n:
+                a[:n] = getattr(self, name)[:n]
+            setattr(self, name, a)
+        X = np.zeros((cap, 3))
+        msc = np.zeros((len(MSide.KEYS), cap))
+        if n:
+            X[:n], msc[:, :n] = self.X[:n], self.msc[:, :n]
+        self.X, self.msc = X, msc
+
+    def _add(self, own, role, src, br, T_so, T_m, T_c) -> np.ndarray:
+        """Append problems (one per row position in own; role IN, SPT or FLT); returns their
+        indices."""
         k = len(own)
+        if self.n_prob + k > len(self.own):
+            self._grow(2 * (self.n_prob + k))
+        p = self.n_prob + np.arange(k)
+        self.n_prob += k
         br = np.broadcast_to(np.asarray(br, dtype=np.int8), (k,))
-        first = len(self.own)
+        role = np.broadcast_to(np.asarray(role, dtype=np.intp), (k,))
         lim = self.lim[own]
         T_sp, T_in = self.T_sp[own], self.T_in[own]
         flt = role == FLT
-        so_lo = np.where(lim > 0, T_sp, np.maximum(T_sp - 15.0, self.fs.tab.T_triple + 5.0)) if flt else np.full(k, -np.inf)
-        so_hi = np.where(lim > 0, T_in - 0.05, T_sp) if flt else np.full(k, np.inf)
-        new = dict(own=own, role=np.full(k, role), src=src, fso=self.plan.f_fd[own] if flt else np.full(k, -1),
-                   br=br, has_m=br != SP, has_so=np.full(k, flt), T_m_fix=self.T_m_sp[own],
-                   bound=np.where(br == HS_MAX, self.n_hs[1], np.where(br == HS_MIN, self.n_hs[0], np.nan)),
-                   n_b=np.where(lim > 0, self.n_ls[1], self.n_ls[0]) if flt else np.full(k, np.nan),
-                   so_lo=so_lo, so_hi=so_hi, conv=np.zeros(k, bool), dead=np.zeros(k, bool),
-                   age=np.zeros(k, dtype=np.intp), fnorm=np.full(k, np.inf), full_step=np.zeros(k, bool))
-        for name in _PROBLEM_ARRAYS:
-            setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
-        X = np.stack([np.minimum(np.maximum(T_so, so_lo), so_hi), T_m, T_c], axis=1)
-        X = np.broadcast_to(X, (k, 3))
-        self.X = np.concatenate([self.X, X])
-        self.Fc = np.concatenate([self.Fc, np.full((k, 3), np.nan)])
-        for key in ASSEMBLY_KEYS:
-            self.s[key] = np.concatenate([self.s[key], np.full(k, np.nan)])
+        so_lo = np.where(flt, np.where(lim > 0, T_sp, np.maximum(T_sp - 15.0, self.fs.tab.T_triple + 5.0)), -np.inf)
+        so_hi = np.where(flt, np.where(lim > 0, T_in - 0.05, T_sp), np.inf)
+        self.own[p], self.role[p], self.src[p], self.br[p] = own, role, src, br
+        self.fso[p] = np.where(flt, self.plan.f_fd[own] if self.plan.copies else -1, -1)
+        self.has_m[p], self.has_so[p], self.T_m_fix[p] = br != SP, flt, self.T_m_sp[own]
+        self.bound[p] = np.where(br == HS_MAX, self.n_hs[1], np.where(br == HS_MIN, self.n_hs[0], np.nan))
+        self.n_b[p] = np.where(flt, np.where(lim > 0, self.n_ls[1], self.n_ls[0]), np.nan)
+        self.so_lo[p], self.so_hi[p] = so_lo, so_hi
+        self.conv[p], self.age[p], self.fnorm[p], self.full_step[p], self.ms_ok[p] = False, 0, np.inf, False, False
+        self.s_ev[p] = -1
+        X = self.X
+        X[p, 0], X[p, 1], X[p, 2] = np.minimum(np.maximum(T_so, so_lo), so_hi), T_m, T_c
         # a start outside the domain fails at once
-        bad = ~(np.all(np.isfinite(X), axis=1) & (X[:, 2] <= self.T_c_max) & (X[:, 1] < X[:, 2] - 0.05))
-        self.dead[first + np.flatnonzero(bad)] = True
-        return first + np.arange(k)
+        bad = ~(np.isfinite(X[p, 0]) & np.isfinite(X[p, 1]) & (X[p, 2] <= self.T_c_max) & (X[p, 1] < X[p, 2] - 0.05))
+        self.dead[p] = bad
+        self.touched[own[bad]] = True
+        return p
+
+    def _add_float(self, own, br, T_so, T_m, T_c) -> np.ndarray:
+        """Floating-point problems for the rows own (their ``lim`` set). With T_m at the set point
+        N_LS depends on T_source,out alone: one Newton step on the LS side (outside the rounds)
+        starts them close to the root in T_source,out."""
+        br = np.broadcast_to(np.asarray(br, dtype=np.int8), (len(own),))
+        T_so = np.array(T_so, dtype=float)
+        j = np.flatnonzero(br == SP)
+        if len(j):
+            fs, h, k = self.fs, FD_STEP, len(j)
+            u = own[j]
+            lim, T_sp, T_in = self.lim[u], self.T_sp[u], self.T_in[u]
+            lo = np.where(lim > 0, T_sp, np.maximum(T_sp - 15.0, fs.tab.T_triple + 5.0))
+            hi = np.where(lim > 0, T_in - 0.05, T_sp)
+            x = np.minimum(np.maximum(T_so[j], lo), hi)
+            src, T_mj = self.plan.f_base[u], self.T_m_sp[u]
+            f2 = fs.ls_speed_at(np.concatenate([src, src]), np.concatenate([x, x + h]), np.concatenate([T_mj, T_mj]))
+            f = f2[:k] - np.where(lim > 0, self.n_ls[1], self.n_ls[0])
+            step = np.clip(-f * h / (f2[k:] - f2[:k]), -STEP_MAX, STEP_MAX)
+            T_so[j] = np.where(np.isfinite(step), np.minimum(np.maximum(x + step, lo), hi), x)
+        return self._add(own, FLT, self.plan.f_base[own], br, T_so, T_m, T_c)
+
+    def _float_switch(self, u, q, nHS) -> None:
+        """The floating points q of the rows u lie in the branch that is not theirs: the other one,
+        once, from the point at hand (as the cold path's second pass)."""
+        X = self.X
+        br = self.br[q]
+        nb = np.where(br != SP, SP, np.where(nHS > self.n_hs[1], HS_MAX, HS_MIN)).astype(np.int8)
+        self.sw_fl[u] = True
+        self.p_flt[u] = self._add_float(u, nb, X[q, 0], np.where(nb == SP, self.T_m_sp[u], X[q, 1]), X[q, 2])
+
+    def _float_early(self, und) -> None:
+        """Floating points that have converged in the branch that is not theirs switch at once,
+        without waiting for the input point."""
+        pf = self.p_flt[und]
+        sel = (pf >= 0) & ~self.sw_fl[und]
+        sel[sel] = self.conv[pf[sel]]
+        if not sel.any():
+            return
+        u, q = und[sel], pf[sel]
+        T_so, T_m = self.X[q, 0], self.X[q, 1]
+        inside = (T_so > self.so_lo[q]) & (T_so <= self.so_hi[q])
+        br = self.br[q]
+        n_lo, n_hi = self.n_hs
+        nHS = self.n_HS[q]
+        cons = np.where(br == SP, (nHS >= n_lo - SPEED_TOL) & (nHS <= n_hi + SPEED_TOL),
+                        np.where(br == HS_MAX, T_m > self.T_m_sp[u] + 1e-6, T_m < self.T_m_sp[u]))
+        sw = inside & ~cons
+        if sw.any():
+            self._float_switch(u[sw], q[sw], nHS[sw])
 
     def _first_trial(self, pos, n_in) -> None:
         """The scalar LS search's first trial x0 of the rows pos (LS speed ratio n_in at the input,
@@ -283,13 +371,22 @@ class WarmSolve:
     def task(self, go_cold):
         fs = self.fs
         h = FD_STEP
+        bt = np.flatnonzero(self.bt_st == 1)
+        if len(bt):
+            yield Spawn(self._branch_test(bt))
         for it in range(MAX_ROUNDS):
             act = np.flatnonzero(~(self.conv | self.dead))
             chk = np.flatnonzero(self.x0_st == 1)
-            if not len(act) and not len(chk) and not (self.hs_st == 1).any():
+            hsc = np.flatnonzero(self.hs_st == 1)
+            if not (len(act) or len(chk) or len(hsc) or (self.bt_st == 1).any()):
                 break
             self.rounds = it + 1
             X = self.X
+            # the intermediate side of a problem with T_m and T_source,out fixed is evaluated once
+            fixed = self.ms_ok[act]
+            act = np.concatenate([act[fixed], act[~fixed]])
+            kf = int(fixed.sum())
+            var = act[kf:]
             so = act[self.has_so[act]]
             if len(so):
                 fs.set_source(self.src[so], X[so, 0])
@@ -298,24 +395,37 @@ class WarmSolve:
             T_m = np.where(self.has_m, X[:, 1], self.T_m_fix)
             k, km, ks = len(act), len(am), len(so)
             who = np.concatenate([act, act, am, so])
-            fx0 = self.plan.f_x0[chk] if len(chk) else np.zeros(0, dtype=np.intp)
-            T_m0 = self.T_m_sp[chk]
-            hsc = np.flatnonzero(self.hs_st == 1)
+            # checks: the scalar LS search's first trial, the cold path's start at an HS bound, the
+            # cold path's first trial at the set point
+            fx0 = self.plan.f_x0[chk]
+            T_mx = self.T_m_sp[chk]
             hr, hm, hc = self.rows[hsc], self.hs_at[hsc, 0], self.hs_at[hsc, 1]
-            ev = yield Eval(fs, np.concatenate([self.src[act], self.src[act], self.src[am], self.fso[so], fx0,
-                                                hr, hr, hr, hr]),
-                            np.concatenate([T_m[act], T_m[act], T_m[am] + h, T_m[so], T_m0, hm, hm, hm + h, hm]),
-                            np.concatenate([X[act, 2], X[act, 2] + h, X[am, 2], X[so, 2],
-                                            np.maximum(fs.T_ki[fx0] + 0.05, T_m0 + 0.05), hc, hc + h, hc,
-                                            np.full(len(hsc), self.T_c_max)]), full=True)
+            new_idx = np.concatenate([self.src[var], self.src[am], self.fso[so], fx0, hr, hr, hr, hr])
+            new_T_m = np.concatenate([T_m[var], T_m[am] + h, T_m[so], T_mx, hm, hm, hm + h, hm])
+            ms_new = fs.m_side(new_idx, new_T_m) if len(new_idx) else MSide(np.zeros((len(MSide.KEYS), 0)))
+            nv = len(var)
+            base_ms = MSide.concat([MSide(self.msc[:, act[:kf]]), ms_new.take(slice(0, nv))])
+            ms = MSide.concat([base_ms, base_ms, ms_new.take(slice(nv, len(new_idx)))])
+            idx = np.concatenate([self.src[act], self.src[act], new_idx[nv:]])
+            T_mr = np.concatenate([T_m[act], T_m[act], new_T_m[nv:]])
+            T_cr = np.concatenate([X[act, 2], X[act, 2] + h, X[am, 2], X[so, 2],
+                                   np.maximum(fs.T_ki[fx0] + 0.05, T_mx + 0.05), hc, hc + h, hc,
+                                   np.full(len(hsc), self.T_c_max)])
+            ev = yield Eval(fs, idx, T_mr, T_cr, ms=ms, full=True)
             err, r, n_HS, n_LS = ev["err"], ev["r"], ev["n_HS"], ev["n_LS"]
-            e0 = len(who)
+            # keep the intermediate side of the problems that will not change it
+            keep = np.flatnonzero(~self.has_m[var] & ~self.has_so[var])
+            if len(keep):
+                self.msc[:, var[keep]] = ms_new.a[:, keep]
+                self.ms_ok[var[keep]] = True
+            e = len(who)
             if len(chk):
-                e1 = e0 + len(chk)
-                self.x0_risk[chk] = (err[e0:e1] != E_OK) | ~(r[e0:e1] <= 0.0)
+                self.x0_risk[chk] = (err[e:e + len(chk)] != E_OK) | ~(r[e:e + len(chk)] <= 0.0)
                 self.x0_st[chk] = 2
+                self.touched[chk] = True
+                e += len(chk)
             if len(hsc):
-                a, b, c, d = (slice(e0 + len(chk) + j * len(hsc), e0 + len(chk) + (j + 1) * len(hsc)) for j in range(4))
+                a, b, c, d = (slice(e + j * len(hsc), e + (j + 1) * len(hsc)) for j in range(4))
                 r_c, n_c = (r[b] - r[a]) / h, (n_HS[b] - n_HS[a]) / h
                 r_m, n_m = (r[c] - r[a]) / h, (n_HS[c] - n_HS[a]) / h
                 self.hs_n[hsc] = n_HS[a] - n_c * r[a] / r_c          # on the curve r = 0 at T_m0
@@ -323,22 +433,48 @@ class WarmSolve:
                 self.hs_risk[hsc] = ((err[a] != E_OK) | (err[b] != E_OK) | (err[c] != E_OK) | (err[d] != E_OK)
                                      | ~(r[d] >= 0.0) | ~(r_c > 0.0) | ~np.isfinite(self.hs_n[hsc] + self.hs_s[hsc]))
                 self.hs_st[hsc] = 2
+                self.touched[hsc] = True
             if k:
-                self._newton(act, am, so, who, err[:e0], r[:e0], n_HS[:e0], n_LS[:e0], ev)
+                n0 = len(who)
+                self._newton(act, am, so, who, err[:n0], r[:n0], n_HS[:n0], n_LS[:n0], ev)
             yield from self._decide(go_cold)
         yield from self._decide(go_cold, final=True)
 
+    def _branch_test(self, pos):
+        """The cold path's branch test (``model.vsolve.TcSolver`` from its cold start at the set
+        point) for the rows pos (a task beside the main one): the HS speed needed there, or the
+        failure the cold path stops with."""
+        fs = self.fs
+        rows = self.rows[pos]
+        tc = TcSolver(fs, rows, fs.T_ki[rows] + 1.3 * fs.Q_s[rows] / fs.C_w[rows] + 3.0, self.T_c_max)
+        raised = Raised(len(rows))
+        T_c, n_sp = yield from tc.solve(np.arange(len(rows)), self.T_m_sp[pos], raised)
+        self.bt_T_c[pos], self.bt_n[pos] = T_c, n_sp
+        self.bt_cls[pos], self.bt_code[pos], self.bt_msg[pos] = raised.cls, raised.code, raised.msg
+        self.bt_st[pos] = 2
+        self.touched[pos] = True
+
     def _newton(self, act, am, so, who, err, r, n_HS, n_LS, ev) -> None:
         """One Newton step of the active problems from their evaluation (the point, then the
-        finite-difference steps in T_c, T_m, T_source,out); converged problems keep their outputs."""
+        finite-difference steps in T_c, T_m, T_source,out); converged problems keep their outputs.
+        One unknown (T_c) and two (T_m, T_c) in closed form, three (with T_source,out) by solve."""
         h = FD_STEP
-        k, km, ks = len(act), len(am), len(so)
-        F = np.stack([np.where(self.has_so[who], n_LS - self.n_b[who], 0.0),
-                      np.where(self.has_m[who], n_HS - self.bound[who], 0.0), r], axis=1)
-        F0 = F[:k]
+        k, km = len(act), len(am)
+        pm = np.flatnonzero(self.has_m[act])
+        ps = np.flatnonzero(self.has_so[act])
+        r0, n0 = r[:k], n_HS[:k]
+        f1 = n0[pm] - self.bound[am]                          # HS speed at its bound
+        f0 = n_LS[:k][ps] - self.n_b[so]                      # LS speed at its bound
+        fn = np.abs(r0) * (1.0 / ENERGY_TOL)
+        fn[pm] = np.maximum(fn[pm], np.abs(f1) * (1.0 / SPEED_TOL))
+        fn[ps] = np.maximum(fn[ps], np.abs(f0) * (1.0 / WARM_LS_TOL))
         good = err[:k] == E_OK
-        fn = np.max(np.abs(F0) * _INV_TOL, axis=1)
-        conv = good & (fn < 1.0)
+        # the set-point test needs the HS speed there beyond (or within) its bounds, not the root
+        # itself to the last digit: a looser residual where the speed is clear of both bounds
+        n_lo, n_hi = self.n_hs
+        loose = ((self.role[act] == SPT) & (np.abs(r0) < SPT_TOL)
+                 & (np.minimum(np.abs(n0 - n_lo), np.abs(n0 - n_hi)) > SPT_MARGIN))
+        conv = good & ((fn < 1.0) | loose)
         # Newton from a nearby root converges quadratically: a full step that does not halve the
         # residual (scaled by the tolerances) says the start is not near a root of this branch
         good &= fn <= np.where(self.full_step[act], PROGRESS, PROGRESS_LIMITED) * self.fnorm[act]
@@ -346,45 +482,62 @@ class WarmSolve:
         c = act[conv]
         if len(c):
             self.conv[c] = True
-            self.Fc[c] = F0[conv]
-            for key in ASSEMBLY_KEYS:
-                self.s[key][c] = ev[key][:k][conv]
-        J = np.zeros((k, 3, 3))
-        J[:, :, 2] = (F[k:2 * k] - F0) / h
+            self.n_HS[c], self.n_LS[c] = n0[conv], n_LS[:k][conv]
+            self.s_ev[c], self.s_j[c] = len(self.evs), np.flatnonzero(conv)   # the outputs: at the end
+            self.evs.append(ev)
+        # the step: dr/dT_c (every problem), then dn_HS/dT_m etc. where they are unknowns
+        r_c = (r[k:2 * k] - r0) * (1.0 / h)
         bad = ~good | (err[k:2 * k] != E_OK)
-        pm = np.flatnonzero(self.has_m[act])
-        J[pm, :, 1] = (F[2 * k:2 * k + km] - F0[pm]) / h
-        bad[pm] |= err[2 * k:2 * k + km] != E_OK
-        ps = np.flatnonzero(self.has_so[act])
-        J[ps, :, 0] = (F[2 * k + km:] - F0[ps]) / h
-        bad[ps] |= err[2 * k + km:] != E_OK
-        J[~self.has_m[act], 1, 1] = 1.0
-        J[~self.has_so[act], 0, 0] = 1.0
-        go = ~conv & ~bad & np.all(np.isfinite(J.reshape(k, 9)), axis=1) & np.all(np.isfinite(F0), axis=1)
+        dX = np.zeros((k, 3))
+        dX[:, 2] = -r0 / r_c
+        if km:
+            q = slice(2 * k, 2 * k + km)
+            bad[pm] |= err[q] != E_OK
+            a, b = (n_HS[q] - n0[pm]) * (1.0 / h), (n_HS[k:2 * k][pm] - n0[pm]) * (1.0 / h)   # dn/dT_m, dn/dT_c
+            c_, d = (r[q] - r0[pm]) * (1.0 / h), r_c[pm]                                      # dr/dT_m, dr/dT_c
+            det = a * d - b * c_
+            bad[pm] |= ~((det != 0.0) & np.isfinite(det))
+            rr = r0[pm]
+            dX[pm, 1] = -(d * f1 - b * rr) / det
+            dX[pm, 2] = -(a * rr - c_ * f1) / det
+        if len(ps):
+            # (n_LS - n_b, n_HS - bound, r) in (T_so, T_m, T_c)
+            F = np.stack([np.where(self.has_so[who], n_LS - self.n_b[who], 0.0),
+                          np.where(self.has_m[who], n_HS - self.bound[who], 0.0), r], axis=1)
+            F0 = F[:k][ps]
+            J = np.zeros((len(ps), 3, 3))
+            J[:, :, 2] = (F[k:2 * k][ps] - F0) / h
+            J[:, :, 0] = (F[2 * k + km:] - F0) / h
+            bad[ps] |= err[2 * k + km:] != E_OK
+            mpos = np.searchsorted(pm, ps)                    # the T_m step of those with T_m unknown
+            hm = self.has_m[act][ps]
+            J[hm, :, 1] = (F[2 * k + mpos[hm]] - F0[hm]) / h
+            J[~hm, 1, 1] = 1.0
+            fin = np.all(np.isfinite(J.reshape(len(ps), 9)), axis=1)
+            det = np.where(fin, np.linalg.det(np.where(fin[:, None, None], J, np.eye(3))), np.nan)
+            ok3 = fin & (det != 0.0) & np.isfinite(det)
+            bad[ps] |= ~ok3
+            if ok3.any():
+                dX[ps[ok3]] = -np.linalg.solve(J[ok3], F0[ok3][:, :, None])[:, :, 0]
+        go = ~conv & ~bad & np.all(np.isfinite(dX), axis=1)
         gi = np.flatnonzero(go)
         dead = act[~conv & ~go]
         if len(gi):
-            Jg = J[gi]
-            det = np.linalg.det(Jg)
-            sing = ~((det != 0.0) & np.isfinite(det))
-            if sing.any():
-                dead = np.concatenate([dead, act[gi[sing]]])
-                gi, Jg = gi[~sing], Jg[~sing]
-        if len(gi):
-            dX = -np.linalg.solve(Jg, F0[gi][:, :, None])[:, :, 0]
+            dX = dX[gi]
             big = np.max(np.abs(dX), axis=1)
             dX *= np.minimum(1.0, STEP_MAX / np.maximum(big, 1e-300))[:, None]
             p = act[gi]
             self.full_step[p] = big <= STEP_MAX
             Xn = self.X[p] + dX
-            inside = (np.all(np.isfinite(Xn), axis=1) & (Xn[:, 2] <= self.T_c_max)
-                      & (Xn[:, 2] > self.fs.T_ki[self.src[p]] + 0.05) & (Xn[:, 1] < Xn[:, 2] - 0.05)
-                      & (Xn[:, 0] > self.so_lo[p]) & (Xn[:, 0] <= self.so_hi[p]))
+            inside = ((Xn[:, 2] <= self.T_c_max) & (Xn[:, 2] > self.fs.T_ki[self.src[p]] + 0.05)
+                      & (Xn[:, 1] < Xn[:, 2] - 0.05) & (Xn[:, 0] > self.so_lo[p]) & (Xn[:, 0] <= self.so_hi[p]))
             self.X[p[inside]] = Xn[inside]
             dead = np.concatenate([dead, p[~inside]])
             self.age[p] += 1
             dead = np.concatenate([dead, p[self.age[p] >= WARM_ROUNDS]])
         self.dead[dead] = True
+        self.touched[self.own[dead]] = True
+        self.touched[self.own[c]] = True
 
     # ---------------------------------------------------------------------------------------------
     def _decide(self, go_cold, final: bool = False):
@@ -392,10 +545,14 @@ class WarmSolve:
         path, a task started beside this one, where one fails); start the problems of rows that
         change branch or start to float."""
         back = []
+        und = np.flatnonzero(self.touched & ~self.decided)
+        self.touched[:] = False
+        if self.ls_mode == "float" and len(und):
+            self._float_early(und)
         for _ in range(4):
-            und = np.flatnonzero(~self.decided)
+            und = und[~self.decided[und]]
             p1 = self.p_in[und]
-            und = und[self.conv[p1] | self.dead[p1]]
+            und = und[self.conv[p1] | self.dead[p1] | (self.bt_st[und] == 2)]
             if not len(und) or not self._settle(und, back):
                 break
         if final:
@@ -411,69 +568,104 @@ class WarmSolve:
                 yield Spawn(go_cold(self.rows[b]))
 
     def _settle(self, und, back: list) -> bool:
-        """One pass over the rows und (their input problem finished): returns whether a row changed
-        its problems (another pass may settle it)."""
-        fs, X, s = self.fs, self.X, self.s
+        """One pass over the rows und: returns whether a row changed its problems (another pass
+        may settle it). The input point's branch as the scalar solver decides it, from the HS speed
+        needed at the set point (the set-point test: the exact cold branch test for borrowed rows,
+        the "sp" input point's own root, or the set-point problem of an HS-bound input point)."""
+        fs, X = self.fs, self.X
         n_lo, n_hi = self.n_hs
         rows, below, T_m_sp = self.rows[und], self.below[und], self.T_m_sp[und]
         p1 = self.p_in[und]
-        cold = self.dead[p1].copy()
-        c1 = self.conv[p1]
+        c1, d1 = self.conv[p1], self.dead[p1]
         br1 = self.br[p1]
+        changed = False
+        # ---- the exact branch test of borrowed rows: its failure is the row's (cold) answer
+        bt = self.bt_st[und] > 0
+        btd = self.bt_st[und] == 2
+        btf = btd & (self.bt_cls[und] != 0)
+        if btf.any():
+            j = np.flatnonzero(btf)
+            u = und[j]
+            code = self.bt_code[u]
+            # "float" mode: a failure for too much duty floats from the far end (the cold path)
+            go = (self.bt_cls[u] == 3) | ((self.ls_mode == "float") & np.isin(code, OVERLOAD))
+            self.decided[u] = True
+            back.append(u[go])
+            f = u[~go]
+            self.failed[f] = True
+            self.fail_code[f], self.fail_msg[f] = code[~go], self.bt_msg[f]
+            keep = ~btf
+            und, rows, below, T_m_sp = und[keep], rows[keep], below[keep], T_m_sp[keep]
+            p1, c1, d1, br1, bt, btd = p1[keep], c1[keep], d1[keep], br1[keep], bt[keep], btd[keep]
+        # ---- the set-point test's outcome
+        p2 = self.p_spt[und]
+        q2 = np.maximum(p2, 0)
+        c2, d2 = (p2 >= 0) & self.conv[q2], (p2 >= 0) & self.dead[q2]
+        spk = br1 == SP
+        ready = np.where(bt, btd, np.where(spk, c1, c2)) & ~below
+        n_sp = np.where(bt, self.bt_n[und], np.where(spk, self.n_HS[p1], self.n_HS[q2]))
+        T_c_sp = np.where(bt, self.bt_T_c[und], np.where(spk, X[p1, 2], X[q2, 2]))
+        r = np.flatnonzero(ready)
+        self.t_n[und[r]], self.t_T_c[und[r]] = n_sp[r], T_c_sp[r]
+        cold = np.where(bt, False, np.where(spk, d1, (p2 < 0) | d2)) & ~below
+        cold |= d1 & ~bt
+        t_in = ready & (n_sp >= n_lo - SPEED_TOL) & (n_sp <= n_hi + SPEED_TOL)
+        t_up, t_dn = ready & (n_sp > n_hi + SPEED_TOL), ready & (n_sp < n_lo - SPEED_TOL)
         T_m, T_c = X[p1, 1], X[p1, 2]
-        nHS = s["n_HS"][p1]
-        inr = (nHS >= n_lo - SPEED_TOL) & (nHS <= n_hi + SPEED_TOL)
-        up, dn = nHS > n_hi + SPEED_TOL, nHS < n_lo - SPEED_TOL
         T_ki = fs.T_ki[rows]
         span = (T_c > T_ki + 0.05) & (T_c > T_m + 0.05) & (T_c <= self.T_c_max)
-        ok_in = np.zeros(len(und), bool)
-        changed = False
-        # ---- input point "sp": the HS speed within its range; else the HS runs at a bound
-        spi = c1 & (br1 == SP)
-        ok_in |= spi & inr & ~below & span
-        sw = spi & (up | dn) & ~below & span & ~self.sw_in[und]
-        cold |= spi & ~(inr & ~below & span) & ~sw
+        ok_in = t_in & spk & c1 & span
+        cold |= t_in & spk & c1 & ~span
+        # the set point holds although the input point was at an HS bound (or the "sp" problem of a
+        # borrowed row failed): the set-point root is the answer, once to the input's tolerance
+        tosp = t_in & ((~spk & ~bt) | (bt & (~spk | d1)))
+        cold |= tosp & self.sw_in[und]
+        tosp &= ~self.sw_in[und]
+        if tosp.any():
+            j = np.flatnonzero(tosp)
+            u = und[j]
+            self.sw_in[u] = True
+            q = p1[j]
+            self.dead[q[~self.conv[q]]] = True
+            nb = ~bt[j]
+            if nb.any():                               # the set-point problem becomes the input's
+                q = p2[j[nb]]
+                self.p_in[u[nb]], self.p_spt[u[nb]] = q, -1
+                self.role[q] = IN
+                loose = q[self.fnorm[q] >= 1.0]
+                self.conv[loose], self.fnorm[loose] = False, np.inf   # iterates again from its point
+            if (~nb).any():                            # from the exact branch test's root
+                k = j[~nb]
+                self.p_in[und[k]] = self._add(und[k], IN, rows[k], SP, self.T_sp[und[k]], T_m_sp[k], T_c_sp[k])
+            changed = True
+        # the HS speed needed at the set point lies beyond a bound: the HS runs there
+        t_b = t_up | t_dn
+        want = np.where(t_up, HS_MAX, HS_MIN).astype(np.int8)
+        sw = t_b & spk & ~self.sw_in[und] & (c1 | d1 | bt)
+        cold |= t_b & spk & self.sw_in[und]
         if sw.any():
             j = np.flatnonzero(sw)
             u = und[j]
             self.sw_in[u] = True
-            self.p_spt[u] = p1[j]              # its root is the branch test at the set point
-            nb = np.where(up[j], HS_MAX, HS_MIN).astype(np.int8)
-            self.p_in[u] = self._add(u, IN, rows[j], nb, self.T_sp[u], T_m_sp[j], T_c[j])
-            self._hs_screen(u, nb, T_c[j])
+            q = p1[j]
+            self.dead[q[~self.conv[q]]] = True
+            self.p_spt[u] = -1
+            self.p_in[u] = self._add(u, IN, rows[j], want[j], self.T_sp[u], T_m_sp[j], T_c_sp[j])
+            self._hs_screen(u, want[j], T_c_sp[j])
             changed = True
-        # ---- input point at an HS bound: the branch test at the set point, the cold path's interval
-        hsi = c1 & (br1 != SP)
-        p2 = self.p_spt[und]
-        has2 = p2 >= 0
-        q2 = np.maximum(p2, 0)
-        c2, d2 = has2 & self.conv[q2], has2 & self.dead[q2]
-        need = hsi & ~below
-        cold |= need & (~has2 | d2)
-        r2 = need & c2
-        n_sp = s["n_HS"][q2]
-        T_c_sp = X[q2, 2]
-        cons = r2 & np.where(br1 == HS_MAX, n_sp > n_hi + SPEED_TOL, n_sp < n_lo - SPEED_TOL)
-        in2 = (n_sp >= n_lo - SPEED_TOL) & (n_sp <= n_hi + SPEED_TOL)
-        tosp = r2 & in2 & ~self.sw_in[und]
-        cold |= r2 & ~(cons | tosp)
-        if tosp.any():
-            u = und[tosp]
-            self.sw_in[u] = True
-            self.dead[p1[tosp][~self.conv[p1[tosp]]]] = True
-            self.p_in[u], self.p_spt[u] = p2[tosp], -1       # the set point holds: "sp"
-            changed = True
+        cold |= t_b & ~spk & (br1 != want)
+        # ---- input point at an HS bound: the cold path's interval for T_m and the screen of its start
+        hs_ok = c1 & ~spk & ((t_b & (br1 == want)) | (below & (br1 == HS_MAX)))
+        cold |= c1 & below & (br1 != HS_MAX)
         T_e = fs.T_e[rows]
         T_c0 = T_ki + 1.3 * fs.Q_s[rows] / fs.C_w[rows] + 3.0
-        hmax, hmin = br1 == HS_MAX, br1 == HS_MIN
-        interval = np.where(below, hmax & (T_m >= T_e + 0.05) & (T_m <= T_c0 - 0.1),
-                            np.where(hmax, (T_m >= T_m_sp) & (T_m <= T_c_sp - 0.1),
+        t_T_c = self.t_T_c[und]
+        interval = np.where(below, (T_m >= T_e + 0.05) & (T_m <= T_c0 - 0.1),
+                            np.where(br1 == HS_MAX, (T_m >= T_m_sp) & (T_m <= t_T_c - 0.1),
                                      (T_m >= T_e + 0.05) & (T_m <= T_m_sp)))
-        ready = hsi & (below | cons)
-        hs_st = self.hs_st[und]
-        ready &= hs_st == 2                    # the screen of the cold path's start evaluated
+        hs_ok &= self.hs_st[und] == 2                  # the screen of the cold path's start evaluated
         # the HS speed needed falls as T_m rises: at the cold path's start it must lie on the side of
-        # the bound that T_m0 lies on against the root, clearly (else a second root may lie between)
+        # the bound that T_m0 lies on against the root, clearly (else a second root may lie between),
         # and falling there too, steeply enough that a secant step from there (the nested search's
         # first, linearised) lands short of the root or beyond it by less than HS_OVERSHOOT times its
         # distance (where the curve flattens the cold search jumps away and fails on its way)
@@ -484,8 +676,9 @@ class WarmSolve:
         screen = ~self.hs_risk[und] & (((side < 0.0) & (np.abs(dn) > HS_SCREEN) & (self.hs_s[und] < 0.0)
                                         & (np.abs(T_m1 - T_m) < HS_OVERSHOOT * np.abs(T_m0 - T_m)))
                                        | (np.abs(T_m0 - T_m) < 1e-3))
-        ok_in |= ready & interval & span & screen
-        cold |= ready & ~(interval & span & screen)
+        good = interval & span & screen
+        ok_in |= hs_ok & good
+        cold |= hs_ok & ~good
         ok_in &= ~cold
         # ---- the answer: the input point, or in "float" mode the floating point
         if self.ls_mode != "float":
@@ -510,9 +703,9 @@ class WarmSolve:
         """Rows und whose input point p1 passed its checks, in "float" mode: the input point is the
         answer where N_LS lies within its range, else the floating point toward the violated bound
         once it has converged and passed its checks."""
-        fs, X, s = self.fs, self.X, self.s
+        X = self.X
         l_lo, l_hi = self.n_ls
-        n_LS = s["n_LS"][p1]
+        n_LS = self.n_LS[p1]
         inr = (n_LS >= l_lo) & (n_LS <= l_hi)
         self._answer(und[inr], p1[inr])
         und, p1, n_LS = und[~inr], p1[~inr], n_LS[~inr]
@@ -529,7 +722,7 @@ class WarmSolve:
             self.lim[u] = L[j]
             self._first_trial(u, n_LS[j])
             q = p1[j]
-            self.p_flt[u] = self._add(u, FLT, self.plan.f_base[u], self.br[q], self.x0[u], X[q, 1], X[q, 2])
+            self.p_flt[u] = self._add_float(u, self.br[q], self.x0[u], X[q, 1], X[q, 2])
             changed = True
         have = (pf >= 0) & ~cold
         q = np.maximum(pf, 0)
@@ -542,7 +735,7 @@ class WarmSolve:
             inside = (T_so > self.so_lo[q]) & (T_so <= self.so_hi[q])
             br = self.br[q]
             n_lo, n_hi = self.n_hs
-            nHS = s["n_HS"][q]
+            nHS = self.n_HS[q]
             T_m_sp = self.T_m_sp[u]
             cons = np.where(br == SP, (nHS >= n_lo - SPEED_TOL) & (nHS <= n_hi + SPEED_TOL),
                             np.where(br == HS_MAX, T_m > T_m_sp + 1e-6, T_m < T_m_sp))
@@ -550,12 +743,7 @@ class WarmSolve:
             sw = inside & ~cons & ~self.sw_fl[u]
             bad = ~inside | (~cons & ~sw)
             if sw.any():
-                k = np.flatnonzero(sw)
-                uk, qk = u[k], q[k]
-                nb = np.where(br[k] != SP, SP, np.where(nHS[k] > n_hi, HS_MAX, HS_MIN))
-                self.sw_fl[uk] = True
-                self.p_flt[uk] = self._add(uk, FLT, self.plan.f_base[uk], nb, X[qk, 0],
-                                           np.where(nb == SP, T_m_sp[k], X[qk, 1]), X[qk, 2])
+                self._float_switch(u[sw], q[sw], nHS[sw])
                 changed = True
             # the first trial: from an "sp" input it lies beyond the root where the search would fail
             x0 = self.x0[u]
@@ -582,19 +770,25 @@ class WarmSolve:
         """(flowsheet rows, T_m, T_c, branch, ls limit, evaluation outputs) of the answers of the
         settled rows pos (positions in the plan's rows)."""
         p = self.answer[pos]
-        return (self.src[p], self.X[p, 1], self.X[p, 2], self.br[p], self._lim_of(pos),
-                {k: v[p] for k, v in self.s.items()})
+        out = {key: np.empty(len(p)) for key in ASSEMBLY_KEYS}
+        ev_of = self.s_ev[p]
+        for e in np.unique(ev_of):
+            sel = np.flatnonzero(ev_of == e)
+            ev, j = self.evs[e], self.s_j[p[sel]]
+            for key in ASSEMBLY_KEYS:
+                out[key][sel] = ev[key][j]
+        return self.src[p], self.X[p, 1], self.X[p, 2], self.br[p], self._lim_of(pos), out
 
     def fill_state(self, pos, state: dict) -> None:
         """The warm-start state of the settled rows pos into ``state`` (indexed by row)."""
         fs = self.fs
         rows = self.rows[pos]
-        p, p1, p2 = self.answer[pos], self.p_in[pos], self.p_spt[pos]
+        p, p1 = self.answer[pos], self.p_in[pos]
         state["branch"][rows] = self.br[p]
         state["T_m"][rows], state["T_c"][rows], state["T_so"][rows] = self.X[p, 1], self.X[p, 2], fs.T_so[self.src[p]]
         state["ls_limit"][rows] = self._lim_of(pos)
         state["in_branch"][rows] = self.br[p1]
         state["in_T_m"][rows], state["in_T_c"][rows] = self.X[p1, 1], self.X[p1, 2]
-        state["T_c_sp"][rows] = np.where(p2 >= 0, self.X[np.maximum(p2, 0), 2], self.X[p1, 2])
+        state["T_c_sp"][rows] = np.where(np.isfinite(self.t_T_c[pos]), self.t_T_c[pos], self.X[p1, 2])
         for k in ("n_LS", "n_HS", "d_SC", "dT_SC", "phi_HS"):
             state[k][rows] = getattr(fs, k)[self.src[p]]

@@ -137,11 +137,11 @@ class Raised:
         self.cls[pos] = 0
 
 
-def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
+def secant_v(F, x0, slope0, tol: float, lo, hi, what: str, on_conv=None):
     """``model.cycle._secant`` for many rows (a task): ``yield from F(pos, x)`` -> (f, ok) evaluates
     the rows at positions pos (ok False where the evaluation raised; F records what). Returns (x, fx,
     slope, kind, msg): kind 0 converged, 1 an evaluation raised, 2 the secant raised
-    ConvergenceError (msg its text)."""
+    ConvergenceError (msg its text). ``on_conv(pos, x)``: called as rows converge."""
     n = len(x0)
     x = np.minimum(np.maximum(x0, lo), hi)
     kind = np.full(n, -1, dtype=np.int8)         # -1 still iterating
@@ -151,6 +151,8 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
     fx = np.array(fx, dtype=float)
     kind[~ok] = 1
     kind[ok & (np.abs(fx) < tol)] = 0
+    if on_conv is not None and (kind == 0).any():
+        on_conv(pos[kind == 0], x[kind == 0])
     slope = np.array(slope0, dtype=float)
     act = np.flatnonzero(kind == -1)
     need = act[~((slope[act] != 0.0) & np.isfinite(slope[act]))]
@@ -195,6 +197,8 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         act = act[ok]
         conv = np.abs(fx[act]) < tol
         kind[act[conv]] = 0
+        if on_conv is not None and conv.any():
+            on_conv(act[conv], x[act[conv]])
         act = act[~conv]
     for k in act:
         kind[k], msg[k] = 2, f"{what}: no convergence in {MAX_ITER} iterations (residual {fx[k]:.3g})"
@@ -213,9 +217,10 @@ class TcSolver:
         self.T_c_lo = fs.T_ki[idx] + 0.05
         self.T_c_max = T_c_max
 
-    def solve(self, pos, T_m, raised: Raised, ms: MSide | None = None):
+    def solve(self, pos, T_m, raised: Raised, ms: MSide | None = None, on_conv=None):
         """(T_c, n_HS) at T_m [K] for the positions pos (a task); NaN and an entry in ``raised``
-        (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c)."""
+        (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c).
+        ``on_conv(positions, T_c, n_HS)``: called as rows converge (their answer is final then)."""
         fs, idx = self.fs, self.idx[pos]
         lo = np.maximum(self.T_c_lo[pos], T_m + 0.05)
         hi = np.full(len(pos), self.T_c_max)
@@ -235,7 +240,8 @@ class TcSolver:
             return ev["r"], ev["err"] == E_OK
 
         x0 = np.minimum(np.maximum(self.T_c_guess[pos], lo + 0.5), hi)
-        x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC)
+        done = None if on_conv is None else (lambda p, x: on_conv(pos[p], x, n_HS[p]))   # noqa: E731
+        x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC, done)
         ms = have[0]
         sec = np.flatnonzero(kind == 2)
         sub.put(sec, np.ones(len(sec), dtype=np.int8), ["no_convergence"] * len(sec), msg[sec])

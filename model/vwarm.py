@@ -48,7 +48,8 @@ from .vsolve import HS_MAX, HS_MIN, SP, Raised, TcSolver
 from .vtasks import Eval, Spawn
 
 WARM_ROUNDS = 8          # Newton steps of a problem before its row goes cold
-MAX_ROUNDS = 16          # evaluation rounds of the warm path in all
+MAX_ROUNDS = 400         # evaluation rounds of the warm path in all (a safety net: the Newton
+#                          problems have WARM_ROUNDS, the cold branch test its own limits)
 FD_STEP = 1e-3           # K, finite-difference step of every unknown
 STEP_MAX = 2.0           # K, the largest Newton step of any unknown
 IN, SPT, FLT = 1, 2, 3   # problem roles: input point, set-point test, floating point
@@ -56,6 +57,7 @@ PROGRESS = 0.5           # a full Newton step must reduce the scaled residual at
 PROGRESS_LIMITED = 0.9   # ... a step cut to STEP_MAX by this one
 HS_SCREEN = 0.01         # HS speed ratio margin of the screen of the cold path's start at an HS bound
 HS_OVERSHOOT = 3.0       # ... the largest overshoot of its first secant step, in its distance to the root
+SCALAR_COLD_MAX = 4      # at most this many rows leaving the warm path go to the scalar solver
 SPT_TOL = 1e-7           # condenser residual of the set-point test where its HS speed is clear of the
 SPT_MARGIN = 1e-4        # bounds by this (speed ratio; its error there is ~1e-8)
 WARM_LS_TOL = 0.1 * LS_SPEED_TOL   # the LS speed ratio on its bound (T_source,out to ~1e-7 K)
@@ -180,6 +182,12 @@ class WarmSolve:
         self.sw_in, self.sw_fl = np.zeros(w, bool), np.zeros(w, bool)   # branch switched once
         self.decided, self.ok = np.zeros(w, bool), np.zeros(w, bool)
         self.touched = np.zeros(w, bool)            # rows with news since they were last looked at
+        self.leave = np.zeros(w, bool)              # rows that leave the warm path: to the vector cold
+        self.gone = np.zeros(w, bool)               # path (gone), or to the scalar one (scalar)
+        self.scalar = np.zeros(w, bool)
+        self.vector = False
+        self.bt_abort = False
+        self.handed: list = []                      # (rows, codes, messages) for the cold float path
         self.answer = np.full(w, -1)
         self.rounds = 0
         # ---- problems: arrays with room for more (slots beyond ``self.n_prob`` are dead)
@@ -373,13 +381,21 @@ class WarmSolve:
         h = FD_STEP
         bt = np.flatnonzero(self.bt_st == 1)
         if len(bt):
-            yield Spawn(self._branch_test(bt))
+            yield Spawn(self._abortable(self._branch_test(bt)))
         for it in range(MAX_ROUNDS):
             act = np.flatnonzero(~(self.conv | self.dead))
             chk = np.flatnonzero(self.x0_st == 1)
             hsc = np.flatnonzero(self.hs_st == 1)
-            if not (len(act) or len(chk) or len(hsc) or (self.bt_st == 1).any()):
-                break
+            if not (len(act) or len(chk) or len(hsc)):
+                wait = np.flatnonzero((self.bt_st == 1) & ~self.decided)
+                if not len(wait):
+                    break
+                if not self.vector and np.count_nonzero(self.leave) + len(wait) <= SCALAR_COLD_MAX:
+                    # only the cold branch test of a few rows is left: the scalar solver instead
+                    self.bt_abort = True
+                    self.decided[wait] = True
+                    self.leave[wait] = True
+                    break
             self.rounds = it + 1
             X = self.X
             # the intermediate side of a problem with T_m and T_source,out fixed is evaluated once
@@ -440,6 +456,17 @@ class WarmSolve:
             yield from self._decide(go_cold)
         yield from self._decide(go_cold, final=True)
 
+    def _abortable(self, task):
+        """``task`` (a generator of requests), ended early once ``bt_abort`` is set."""
+        value = None
+        while not self.bt_abort:
+            try:
+                req = task.send(value)
+            except StopIteration:
+                return
+            value = yield req
+        task.close()
+
     def _branch_test(self, pos):
         """The cold path's branch test (``model.vsolve.TcSolver`` from its cold start at the set
         point) for the rows pos (a task beside the main one): the HS speed needed there, or the
@@ -448,11 +475,19 @@ class WarmSolve:
         rows = self.rows[pos]
         tc = TcSolver(fs, rows, fs.T_ki[rows] + 1.3 * fs.Q_s[rows] / fs.C_w[rows] + 3.0, self.T_c_max)
         raised = Raised(len(rows))
-        T_c, n_sp = yield from tc.solve(np.arange(len(rows)), self.T_m_sp[pos], raised)
-        self.bt_T_c[pos], self.bt_n[pos] = T_c, n_sp
-        self.bt_cls[pos], self.bt_code[pos], self.bt_msg[pos] = raised.cls, raised.code, raised.msg
-        self.bt_st[pos] = 2
-        self.touched[pos] = True
+
+        def conv(j, T_c, n_sp):                   # rows whose test has converged are settled at once
+            u = pos[j]
+            self.bt_T_c[u], self.bt_n[u], self.bt_st[u] = T_c, n_sp, 2
+            self.touched[u] = True
+
+        T_c, n_sp = yield from tc.solve(np.arange(len(rows)), self.T_m_sp[pos], raised, on_conv=conv)
+        left = self.bt_st[pos] == 1
+        u = pos[left]
+        self.bt_T_c[u], self.bt_n[u] = T_c[left], n_sp[left]
+        self.bt_cls[u], self.bt_code[u], self.bt_msg[u] = raised.cls[left], raised.code[left], raised.msg[left]
+        self.bt_st[u] = 2
+        self.touched[u] = True
 
     def _newton(self, act, am, so, who, err, r, n_HS, n_LS, ev) -> None:
         """One Newton step of the active problems from their evaluation (the point, then the
@@ -565,7 +600,24 @@ class WarmSolve:
                 for p in (self.p_in[b], self.p_spt[b], self.p_flt[b]):
                     p = p[p >= 0]
                     self.dead[p[~self.conv[p]]] = True
-                yield Spawn(go_cold(self.rows[b]))
+                self.leave[b] = True
+        # the rows that leave: a few go to the scalar solver once the warm path is done (the vector
+        # cold path costs its rounds, 5-60, whatever its rows; the scalar one ~0.2-6 ms a row),
+        # more start on the vector cold path at once
+        for u, code, msg in self.handed:
+            for p in (self.p_in[u], self.p_spt[u], self.p_flt[u]):
+                p = p[p >= 0]
+                self.dead[p[~self.conv[p]]] = True
+            self.gone[u] = True
+            yield Spawn(go_cold(self.rows[u], code, msg))
+        self.handed = []
+        lv = np.flatnonzero(self.leave & ~self.gone)
+        if len(lv) and (self.vector or np.count_nonzero(self.leave) > SCALAR_COLD_MAX):
+            self.vector = True
+            self.gone[lv] = True
+            yield Spawn(go_cold(self.rows[lv]))
+        elif final and len(lv):
+            self.scalar[lv] = True
 
     def _settle(self, und, back: list) -> bool:
         """One pass over the rows und: returns whether a row changed its problems (another pass
@@ -588,12 +640,15 @@ class WarmSolve:
             u = und[j]
             code = self.bt_code[u]
             # "float" mode: a failure for too much duty floats from the far end (the cold path)
-            go = (self.bt_cls[u] == 3) | ((self.ls_mode == "float") & np.isin(code, OVERLOAD))
+            over = (self.ls_mode == "float") & np.isin(code, OVERLOAD) & (self.bt_cls[u] != 3)
+            go = self.bt_cls[u] == 3
             self.decided[u] = True
             back.append(u[go])
-            f = u[~go]
+            if over.any():                             # the cold path goes on from that failure
+                self.handed.append((u[over], code[over], self.bt_msg[u[over]]))
+            f = u[~go & ~over]
             self.failed[f] = True
-            self.fail_code[f], self.fail_msg[f] = code[~go], self.bt_msg[f]
+            self.fail_code[f], self.fail_msg[f] = code[~go & ~over], self.bt_msg[f]
             keep = ~btf
             und, rows, below, T_m_sp = und[keep], rows[keep], below[keep], T_m_sp[keep]
             p1, c1, d1, br1, bt, btd = p1[keep], c1[keep], d1[keep], br1[keep], bt[keep], btd[keep]

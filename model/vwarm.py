@@ -1,42 +1,59 @@
-"""Warm starts of ``model.vcycle.solve_many``: every row from a nearby solved state of its own.
+"""Warm starts of ``model.vcycle.solve_many``: every row from a nearby solved state.
 
 A row's cold path (``model.vsolve``, ``model.vfloat``) follows the scalar solver step by step,
-35-60 sequential evaluation rounds for the hardest rows. From a nearby solution the root of the
-guessed branch is found directly, by Newton on all rows at once with finite-difference Jacobians
-(the point and one step per unknown in the same batched evaluation), and then the branch is verified
-the way the scalar solver decides it. The problems of a row (all in the same evaluation rounds):
+35-60 sequential evaluation rounds for the hardest rows, and a round costs its numpy calls whatever
+its rows. From a nearby solution the root of the guessed branch is found directly: Newton on all
+rows at once, the Jacobian by finite differences in the same batched evaluation (one step per
+unknown), ~3 rounds; then the branch is checked the way the scalar solver decides it. A row's
+problems (all in the same rounds):
 
-- ``input``: the solution at the input's T_source,out in the branch of the guess's input point:
-  "sp" (unknown T_c, T_m at the set point: condenser-zone residual r = 0) or an HS speed bound
-  (unknowns T_m, T_c: r = 0 and n_HS = bound);
-- ``set point`` (rows at an HS bound): T_c at the set point, the scalar's branch test: the HS speed
-  needed there must lie beyond the bound, and the point must solve there (an isentropic efficiency
-  outside (0.05, 1] at the set point fails the row cold: ``eta_out_of_range``);
-- ``float`` ("float" mode, the guess's LS floated): T_source,out with N_LS on the guess's bound
-  (plus T_c, and T_m at an HS bound);
-- ``first trial`` (floating rows from an "sp" input): one evaluation where the scalar LS search
-  makes its first trial, which can fail the search (``model.vfloat._first_trial``).
+- input point: the solution at the input's T_source,out in the branch of the guess's input point,
+  "sp" (T_m at the set point, unknown T_c: condenser-zone residual r = 0) or an HS speed bound
+  (unknowns T_m, T_c: r = 0 and n_HS at the bound);
+- set-point test (input at an HS bound): T_c at the set point, where the scalar solver's branch
+  test looks: the HS speed needed there must lie beyond the bound. Rows whose own guess had no
+  solution (they borrow the nearest solved set point of the same operating point) run the cold
+  path's exact branch test instead, whose failure is then their answer;
+- floating point ("float" mode, the row floats): T_source,out with N_LS on its bound, T_c (and T_m
+  at an HS bound); the scalar LS search's first trial is evaluated once (``model.vfloat.
+  _first_trial``);
+- the cold search at an HS bound: its start, the middle of the T_m interval, is evaluated once
+  (the screen below).
 
-A row leaves the warm path for the cold path (which may itself fall back to the scalar solver)
-when any evaluation of its problems raises (``E_*``: a compressor, table or order check), a step
-leaves the domain, a problem has not converged within ``WARM_ROUNDS`` rounds, or a check fails:
+A row's answer must be the cold path's, and the cold path can fail on its way where the root
+exists (its outcome depends on its trial points). A row leaves the warm path when an evaluation of
+its problems raises (``E_*``: compressor curve, tables, order of temperatures, SC iteration), a
+step leaves the domain, a Newton step does not halve the residual (0.9 for a step cut to
+STEP_MAX: the start is not near a root of this branch), a problem has not converged in
+WARM_ROUNDS steps, or a check fails:
 
-- "sp": n_HS at the root within [n_min, n_max] (widened by SPEED_TOL), the set point above
-  1.001 p_e;
-- HS bound: the set-point problem solved with n_HS beyond the bound by more than SPEED_TOL, T_m in
-  the cold path's search interval (hs_max: T_m_sp .. T_c,sp - 0.1 K; hs_min: T_e + 0.05 K ..
-  T_m_sp; a set point at or below 1.001 p_e: hs_max in T_e + 0.05 K .. T_c,0 - 0.1 K);
-- T_c in the cold secant's range (above T_sink,in + 0.05 K and T_m + 0.05 K, at most T_c_max);
-- "float" mode: N_LS at the input within its range (the row does not float; from a floating guess
-  the input point is then the answer) or beyond it on the guess's side, with the floating root in
-  the scalar search's interval on that side (T_sp < T_so <= T_in - 0.05 K at N_max), its branch
-  consistent (n_HS in range at "sp"; T_m beyond the set point at a bound), and no failing first
-  trial where the scalar's search would make one.
+- "sp" input: n_HS at the root within [n_min, n_max] (widened by SPEED_TOL), the set point above
+  1.001 p_e, T_c in the cold secant's range (above T_sink,in + 0.05 K and T_m + 0.05 K, at most
+  T_c_max). An "sp" input needing an HS bound, or an HS-bound input whose set point holds,
+  changes branch once and stays warm from the root at hand;
+- HS-bound input: the set-point test beyond the bound; T_m in the cold path's interval (hs_max:
+  T_m_sp .. T_c,sp - 0.1 K; hs_min: T_e + 0.05 K .. T_m_sp; set point at or below 1.001 p_e:
+  hs_max in T_e + 0.05 K .. T_c,0 - 0.1 K); and the screen of the cold search's start T_m0: the
+  evaluations there raise nothing, the condenser carries the duty at T_c_max there (else the cold
+  search fails p_c_high on its way), the HS speed on the condensing curve there (linearised) lies
+  on the far side of the bound from the root by more than HS_SCREEN and falls with T_m, steeply
+  enough that a secant step from T_m0 lands short of the root or beyond it by less than
+  HS_OVERSHOOT times its distance (where that curve flattens or turns, the cold search walks away
+  and fails, or finds another root);
+- "float" mode: N_LS at the input within its range (then the input point is the answer), or
+  beyond it, and then the floating root inside the scalar search's interval on that side
+  (T_sp < T_so <= T_in - 0.05 K at N_max), in a consistent branch (n_HS in range at "sp", T_m
+  beyond the set point at a bound; the other branch is tried once), and no failing first trial
+  where the scalar search makes one (from an "sp" input, beyond the root).
 
-The roots are those of the cold path to its tolerances (ENERGY_TOL, SPEED_TOL; the LS bound to
-1e-11 in speed ratio as ``model.vfloat``). What the check cannot see: a cold path whose trial
-points fail although the root is valid (the scalar's outcome depends on its path there); near
-such rows the statuses may differ (tests/test_vcycle.py states the rule and checks it). SI units.
+Rows that leave (and rows without any usable guess) take the cold path: up to SCALAR_COLD_MAX of
+them the scalar solver (0.2-6 ms a row against 5-60 vector rounds of ~0.45 ms), more the vector
+cold path, started as they leave. Tolerances are the scalar solver's (ENERGY_TOL, SPEED_TOL; the LS
+bound to WARM_LS_TOL = LS_SPEED_TOL / 10, T_source,out within ~1e-7 K of the cold path's). The
+screen is not a proof that the cold search succeeds: on the test grids (set points +-0.25..2 bar,
+fouling steps, condenser factors, learned curves and draws, unrelated guesses; rows up to 1.8
+times the LS stage's speed) no status differs from the cold path's (tests/test_vcycle.py states
+the rule near limits). SI units.
 """
 from __future__ import annotations
 
@@ -405,8 +422,7 @@ class WarmSolve:
             var = act[kf:]
             so = act[self.has_so[act]]
             if len(so):
-                fs.set_source(self.src[so], X[so, 0])
-                fs.set_source(self.fso[so], X[so, 0] + h)
+                fs.set_source(np.concatenate([self.src[so], self.fso[so]]), np.concatenate([X[so, 0], X[so, 0] + h]))
             am = act[self.has_m[act]]
             T_m = np.where(self.has_m, X[:, 1], self.T_m_fix)
             k, km, ks = len(act), len(am), len(so)

@@ -233,6 +233,8 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
             per_row[name] = np.broadcast_to(a, (n,)).copy()
     gi = None
     if guess is not None:
+        if not getattr(guess, "state", None):
+            raise ValueError("guess has no warm-start state (give a VResult of solve_many)")
         if guess_index is None:
             if len(guess) != n:
                 raise ValueError(f"guess has {len(guess)} rows for {n} rows (give guess_index)")

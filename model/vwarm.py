@@ -552,17 +552,20 @@ class WarmSolve:
             dX[pm, 1] = -(d * f1 - b * rr) / det
             dX[pm, 2] = -(a * rr - c_ * f1) / det
         if len(ps):
-            # (n_LS - n_b, n_HS - bound, r) in (T_so, T_m, T_c)
-            F = np.stack([np.where(self.has_so[who], n_LS - self.n_b[who], 0.0),
-                          np.where(self.has_m[who], n_HS - self.bound[who], 0.0), r], axis=1)
-            F0 = F[:k][ps]
-            J = np.zeros((len(ps), 3, 3))
-            J[:, :, 2] = (F[k:2 * k][ps] - F0) / h
-            J[:, :, 0] = (F[2 * k + km:] - F0) / h
-            bad[ps] |= err[2 * k + km:] != E_OK
-            mpos = np.searchsorted(pm, ps)                    # the T_m step of those with T_m unknown
+            # (n_LS - n_b, n_HS - bound, r) in (T_so, T_m, T_c), at the point and its steps
             hm = self.has_m[act][ps]
-            J[hm, :, 1] = (F[2 * k + mpos[hm]] - F0[hm]) / h
+            mpos = 2 * k + np.searchsorted(pm, ps)            # the T_m step of those with T_m unknown
+            rows4 = np.concatenate([ps, k + ps, 2 * k + km + np.arange(len(ps)), mpos[hm]])
+            q = who[rows4]
+            F = np.stack([n_LS[rows4] - self.n_b[q], np.where(self.has_m[q], n_HS[rows4] - self.bound[q], 0.0),
+                          r[rows4]], axis=1)
+            n3 = len(ps)
+            F0 = F[:n3]
+            J = np.zeros((n3, 3, 3))
+            J[:, :, 2] = (F[n3:2 * n3] - F0) / h
+            J[:, :, 0] = (F[2 * n3:3 * n3] - F0) / h
+            bad[ps] |= err[2 * k + km:] != E_OK
+            J[hm, :, 1] = (F[3 * n3:] - F0[hm]) / h
             J[~hm, 1, 1] = 1.0
             fin = np.all(np.isfinite(J.reshape(len(ps), 9)), axis=1)
             det = np.where(fin, np.linalg.det(np.where(fin[:, None, None], J, np.eye(3))), np.nan)

@@ -67,6 +67,17 @@ class MSide:
         return MSide(np.concatenate([p.a for p in parts], axis=1))
 
 
+def speed_v(comp, m, rho_suc, pi, n0):
+    """``comp.speed_for_flow_v`` with rows whose inputs are not finite (rows failing upstream) kept
+    out of its iteration, NaN for them: ``Compressor.speed_for_flow_v`` iterates until the largest
+    step of all rows is small, and a NaN step ends it for every row after one step."""
+    ok = np.isfinite(m) & np.isfinite(rho_suc) & np.isfinite(pi)
+    if ok.all():
+        return comp.speed_for_flow_v(m, rho_suc, pi, n0)
+    n, ev = comp.speed_for_flow_v(np.where(ok, m, 1.0), np.where(ok, rho_suc, 10.0), np.where(ok, pi, 2.0), n0)
+    return np.where(ok, n, np.nan), np.where(ok, ev, np.nan)
+
+
 def counterflow_eps_v(C_a, C_b, UA):
     """``model.components.counterflow_eps`` for arrays: (effectiveness, C_min)."""
     C_min = np.minimum(C_a, C_b)
@@ -173,7 +184,7 @@ class Flowsheet:
         the rows' stored state is left as it is, so a row may appear several times)."""
         Q, _, p_e, _, h1, _, rho1, _ = self.source(idx, T_so)
         p_m, h_f_m = self.tab.sat(T_m)[:2]
-        return self.ls.speed_for_flow_v(Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
+        return speed_v(self.ls, Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
 
     def ls_speed(self, idx, T_m, sat_m=None):
         """LS speed ratio [-], eta_vol, m_LS [kg/s] and pressure ratio for the rows idx: the LS side
@@ -181,7 +192,7 @@ class Flowsheet:
         p_m, h_f_m = (sat_m[0], sat_m[1]) if sat_m is not None else self.tab.sat(T_m)[:2]
         m_LS = self.Q_s[idx] / (self.h1[idx] - h_f_m)
         pi = p_m / self.p_e[idx]
-        n_LS, ev = self.ls.speed_for_flow_v(m_LS, self.rho1[idx], pi, self.n_LS[idx])
+        n_LS, ev = speed_v(self.ls, m_LS, self.rho1[idx], pi, self.n_LS[idx])
         return n_LS, ev, m_LS, pi
 
     # ---- intermediate side: fixed by T_m ----------------------------------------------------------
@@ -229,7 +240,7 @@ class Flowsheet:
         pi_HS = p_c / ms["p_m"]
         phi = m / ms["rho_g_m"]                      # the swept flow the HS must move, times V_s
         n0 = self.n_HS[idx] * (phi / self.phi_HS[idx])   # speed about proportional to it
-        n_HS, ev_HS = hs.speed_for_flow_v(m, ms["rho_g_m"], pi_HS, np.where(n0 == n0, n0, self.n_HS[idx]))
+        n_HS, ev_HS = speed_v(hs, m, ms["rho_g_m"], pi_HS, np.where(n0 == n0, n0, self.n_HS[idx]))
         eta_HS = hs.eta_is_v(pi_HS, n_HS)
         ds = ms["s_g_m"] - s_g_c
         h4s = tab.isen_raw(Tq, ds)

@@ -78,6 +78,9 @@ SCALAR_COLD_MAX = 4      # at most this many rows leaving the warm path go to th
 SPT_TOL = 1e-7           # condenser residual of the set-point test where its HS speed is clear of the
 SPT_MARGIN = 1e-4        # bounds by this (speed ratio; its error there is ~1e-8)
 WARM_LS_TOL = 0.1 * LS_SPEED_TOL   # the LS speed ratio on its bound (T_source,out to ~1e-7 K)
+LAST_STEP = 1e-4         # K: a Newton step at most this long, from residuals below LAST_FN times
+LAST_FN = 1e3            # the tolerances, is the last (the outputs are moved by it, linearised),
+LAST_ERR = 1e-10         # ... or one after which the error left is below this [K]
 # the evaluation outputs the assembly needs, kept per problem where it converges
 ASSEMBLY_KEYS = ("err", "h2", "h_g_m", "m_LS", "m_HS", "h4", "Q_SC", "Q_con", "Q_DSH", "T_w1", "T_w2",
                  "T_SC", "T4", "cp_v", "n_LS", "n_HS", "p_m", "p_c", "eta_LS", "eta_HS", "ev_LS",
@@ -154,8 +157,9 @@ class WarmPlan:
 
 
 _PROBLEM_ARRAYS = ("own", "role", "src", "fso", "br", "has_m", "has_so", "T_m_fix", "bound", "n_b", "so_lo",
-                   "so_hi", "conv", "dead", "age", "fnorm", "full_step", "ms_ok", "n_HS", "n_LS", "s_ev", "s_j")
-_FLOATS = ("T_m_fix", "bound", "n_b", "so_lo", "so_hi", "fnorm", "n_HS", "n_LS")
+                   "so_hi", "conv", "dead", "age", "fnorm", "full_step", "ms_ok", "n_HS", "n_LS", "s_ev", "s_j",
+                   "last_dx")
+_FLOATS = ("T_m_fix", "bound", "n_b", "so_lo", "so_hi", "fnorm", "n_HS", "n_LS", "last_dx")
 _BOOLS = ("has_m", "has_so", "conv", "dead", "full_step", "ms_ok")
 
 
@@ -298,6 +302,7 @@ class WarmSolve:
         self.so_lo[p], self.so_hi[p] = so_lo, so_hi
         self.conv[p], self.age[p], self.fnorm[p], self.full_step[p], self.ms_ok[p] = False, 0, np.inf, False, False
         self.s_ev[p] = -1
+        self.last_dx[p] = np.inf
         X = self.X
         X[p, 0], X[p, 1], X[p, 2] = np.minimum(np.maximum(T_so, so_lo), so_hi), T_m, T_c
         # a start outside the domain fails at once
@@ -541,6 +546,28 @@ class WarmSolve:
         bad = ~good | (err[k:2 * k] != E_OK)
         dX = np.zeros((k, 3))
         dX[:, 2] = -r0 / r_c
+        # the set-point test settles as soon as the HS speed at its root (one Newton step away,
+        # within twice that step's length of it) is clear of both bounds, and the isentropic
+        # efficiency there of its range, by four times what that distance can change them
+        j = np.flatnonzero((self.role[act] == SPT) & ~conv & ~bad & (r_c > 0.0))
+        if len(j):
+            d = dX[j, 2]
+            U = 2.0 * np.abs(d) + 1e-6
+            n_c = (n_HS[k + j] - n0[j]) * (1.0 / h)
+            eta = ev["eta_HS"]
+            e_c = (eta[k + j] - eta[j]) * (1.0 / h)
+            n_s, e_s = n0[j] + n_c * d, eta[j] + e_c * d
+            dn, de = 4.0 * np.abs(n_c) * U + SPEED_TOL, 4.0 * np.abs(e_c) * U + 1e-3
+            clear = ((np.abs(d) < STEP_MAX) & (np.minimum(np.abs(n_s - n_lo), np.abs(n_s - n_hi)) > dn)
+                     & (e_s - de > 0.05) & (e_s + de < 1.0))
+            q = act[j[clear]]
+            if len(q):
+                conv[j[clear]] = True
+                self.conv[q] = True
+                self.touched[self.own[q]] = True
+                self.X[q, 2] += d[clear]
+                self.n_HS[q] = n_s[clear]
+                self.s_ev[q] = -1                          # a test: no outputs kept
         if km:
             q = slice(2 * k, 2 * k + km)
             bad[pm] |= err[q] != E_OK
@@ -581,17 +608,56 @@ class WarmSolve:
             big = np.max(np.abs(dX), axis=1)
             dX *= np.minimum(1.0, STEP_MAX / np.maximum(big, 1e-300))[:, None]
             p = act[gi]
+            prev_full = self.full_step[p]
             self.full_step[p] = big <= STEP_MAX
             Xn = self.X[p] + dX
             inside = ((Xn[:, 2] <= self.T_c_max) & (Xn[:, 2] > self.fs.T_ki[self.src[p]] + 0.05)
                       & (Xn[:, 1] < Xn[:, 2] - 0.05) & (Xn[:, 0] > self.so_lo[p]) & (Xn[:, 0] <= self.so_hi[p]))
             self.X[p[inside]] = Xn[inside]
             dead = np.concatenate([dead, p[~inside]])
+            # a step this small is the last: the point and every output move by it, linearised
+            # with the same differences (what is left is of second order): a step below LAST_STEP
+            # from residuals below LAST_FN times the tolerances, or, once Newton converges
+            # quadratically (a full step before, this one below a tenth of it), one after which
+            # the error left, ~ step^3 / previous step^2, is below LAST_ERR
+            prev = self.last_dx[p]
+            self.last_dx[p] = big
+            quad = prev_full & (big < 0.1 * prev) & (big * big * big < LAST_ERR * prev * prev) & (fn[gi] < 10 * LAST_FN)
+            last = inside & (((big <= LAST_STEP) & (fn[gi] < LAST_FN)) | quad)
+            if last.any():
+                self._last_step(act, gi[last], dX[last], ev, k, km, pm, ps)
             self.age[p] += 1
-            dead = np.concatenate([dead, p[self.age[p] >= WARM_ROUNDS]])
+            dead = np.concatenate([dead, p[(self.age[p] >= WARM_ROUNDS) & ~self.conv[p]]])
         self.dead[dead] = True
         self.touched[self.own[dead]] = True
         self.touched[self.own[c]] = True
+
+    def _last_step(self, act, j, dX, ev, k, km, pm, ps) -> None:
+        """Problems act[j] converge by their step dX (already applied to X): their outputs at the
+        root from the evaluation at the point and its finite-difference steps (T_c, T_m, T_so)."""
+        h = FD_STEP
+        p = act[j]
+        im = np.searchsorted(pm, j)                        # positions of the T_m / T_so steps
+        isp = np.searchsorted(ps, j)
+        hm, hso = self.has_m[p], self.has_so[p]
+        keys = ASSEMBLY_KEYS[1:]                           # all but "err"
+        Y = np.stack([ev[key] for key in keys])           # (keys, evaluated rows)
+        y0 = Y[:, j]
+        v = y0 + (Y[:, k + j] - y0) * (dX[:, 2] / h)
+        if hm.any():
+            v[:, hm] += (Y[:, 2 * k + im[hm]] - y0[:, hm]) * (dX[hm, 1] / h)
+        if hso.any():
+            v[:, hso] += (Y[:, 2 * k + km + isp[hso]] - y0[:, hso]) * (dX[hso, 0] / h)
+        out = dict(zip(keys, v))
+        out["err"] = ev["err"][j]
+        self.conv[p] = True
+        self.touched[self.own[p]] = True
+        self.n_HS[p], self.n_LS[p] = out["n_HS"], out["n_LS"]
+        self.s_ev[p], self.s_j[p] = len(self.evs), np.arange(len(p))
+        self.evs.append(out)
+        so = p[hso]
+        if len(so):                                        # the source side at the final T_so
+            self.fs.set_source(self.src[so], self.X[so, 0])
 
     # ---------------------------------------------------------------------------------------------
     def _decide(self, go_cold, final: bool = False):

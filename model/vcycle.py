@@ -366,7 +366,8 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
         _assemble(fs, src, dst, T_m, T_c, br == HS_MAX, lim != 0, no_flag, no_flag,
                   values, status, reason, fallback, amb_bar, s=s)
         ws.fill_state(pos, state)
-        branch[dst] = np.array(["sp", "hs_max", "hs_min"], dtype=object)[br]
+        named = status[dst] == ""               # as on the cold path: flagged rows have no branch name
+        branch[dst[named]] = np.array(["sp", "hs_max", "hs_min"], dtype=object)[br[named]]
     t3 = time.process_time()
     for i in np.flatnonzero(fallback):
         branch[i] = _scalar_row(i, cols, _row_params(params, R_th_f, cond, i), fluid, ls_mode, amb_bar,

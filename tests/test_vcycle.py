@@ -397,6 +397,8 @@ def check_warm(params, df: pd.DataFrame, ls_mode: str, guess, min_warm: float = 
     solved = got["Q_sink_kW"].notna().to_numpy() & ref["Q_sink_kW"].notna().to_numpy()
     same = np.setdiff1d(np.arange(n), differ)
     assert (got["Q_sink_kW"].notna() == ref["Q_sink_kW"].notna()).to_numpy()[same].all()
+    near = [i for i in range(n) if near_limit_warm(params, got.iloc[i], ref.iloc[i])]
+    assert (vr.branch == cold.branch)[np.setdiff1d(same, near)].all()
     for k in COMPARED:
         rel = np.abs(got[k].to_numpy() - ref[k].to_numpy()) / np.abs(ref[k].to_numpy())
         assert rel[solved].max() <= AGREE_REL, (k, rel[solved].max())

@@ -23,6 +23,11 @@ Rows the vectorised path cannot settle (states outside the tables, a vectorised 
 that does not converge, a floating LS that settles in no branch) are solved by ``model.cycle.solve``
 (cold) one by one: ``VResult.fallback_rows`` counts them. Units at the interface are those of
 ``model.batch`` (degC, m3/h, bar(g) in; bar absolute, degC, kW, rpm out); SI inside.
+
+Warm starts (``guess``, ``model.vwarm``): from a previous result's ``state`` (SI), every row's root
+in its guessed branch by Newton on all rows at once, then the scalar solver's branch checks; rows
+those do not settle take the cold path (a few of them the scalar solver). The answers are the cold
+path's. Per-row ``R_th_f`` and ``cond_factor`` batch what would be calls with other parameters.
 """
 from __future__ import annotations
 
@@ -43,6 +48,7 @@ from .vflowsheet import Flowsheet
 from .vfloat import FloatLS
 from .vtasks import run
 from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
+from .vwarm import SCALAR_COLD_MAX, WarmPlan, WarmSolve, borrow, empty_state, take_state, usable
 
 SOLVED_FLAGS = ("ls_speed_high", "ls_speed_low", "negative_pinch")
 # beyond model.batch.OUTPUT_KEYS: the subcooler's states (its outlet on the equation of state)
@@ -110,17 +116,36 @@ class VResult:
     ``model.batch.OUTPUT_KEYS`` (bar absolute, degC, kW, rpm; booleans for hs_saturated,
     ls_saturated; NaN where a row has no solution), ``status`` and ``reason`` per row (the codes of
     ``model.batch.solve_rows``), ``branch`` ("sp", "hs_max", "hs_min", "" unsolved), ``fallback``
-    (rows solved by the scalar path) and their count ``fallback_rows``."""
+    (rows solved by the scalar path) and their count ``fallback_rows``; ``warm``/``cold`` (rows
+    answered on the warm path / the vectorised cold path) and their counts; ``state``: per row, in
+    SI, what a later call needs to start from this one (``model.vwarm.STATE_KEYS``: the solution's
+    branch, T_m, T_c [K], T_source,out [K] and LS limit, the input point's solution where the LS
+    floated, T_c of the branch test at the set point, the inner iterations' last values, the
+    row's operating point and set point)."""
     values: dict
     status: np.ndarray
     reason: np.ndarray
     branch: np.ndarray
     fallback: np.ndarray
     timings: dict = field(default_factory=dict)
+    state: dict = field(default_factory=dict)
+    warm: np.ndarray | None = None
+    cold: np.ndarray | None = None
 
     @property
     def fallback_rows(self) -> int:
         return int(self.fallback.sum())
+
+    @property
+    def warm_rows(self) -> int:
+        """Rows answered on the warm path (``solve_many(guess=...)``)."""
+        return 0 if self.warm is None else int(self.warm.sum())
+
+    @property
+    def cold_rows(self) -> int:
+        """Rows answered on the vectorised cold path (without a guess, or having left the warm
+        path); rows the input checks decide and rows of the scalar path are neither."""
+        return 0 if self.cold is None else int(self.cold.sum())
 
     def __len__(self) -> int:
         return len(self.status)
@@ -168,7 +193,8 @@ def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
 
 
 def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
-               force_scalar=None) -> VResult:
+               force_scalar=None, guess: "VResult | None" = None, guess_index=None, R_th_f=None,
+               cond_factor=None) -> VResult:
     """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
     m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
     as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
@@ -176,16 +202,66 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
     to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys
     of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``.
 
+    guess : VResult, optional
+        A previous result with a nearby solution of every row (same row order; or ``guess_index``):
+        rows start from it on the warm path (``model.vwarm``: Newton on the guessed branch, then the
+        scalar solver's branch checks); rows it cannot settle take the cold path. The answers are
+        the cold path's (see ``model.vwarm`` for what a warm row is checked against).
+    guess_index : int array, optional
+        Row i starts from row ``guess_index[i]`` of ``guess`` (-1: cold).
+    R_th_f : float or array [K/W], optional
+        Per-row evaporator fouling resistance in place of ``params.R_th_f``.
+    cond_factor : float or array [-], optional
+        Per-row factor on the condenser unit's conductances CF_DSH, CF_con, CF_SC
+        (``model.analysis.chain.scale_condenser``). With either, every row is answered as by
+        ``solve_many`` with ``params.replace(...)`` of its own values.
+
     The properties are HEOS's (``model.cycletables``) whatever ``params.backend`` says: with a
     tabular backend the scalar solver deviates from HEOS by up to ~1e-5, and so from these answers;
     only the rows that go to the scalar path use the configured backend."""
     if ls_mode not in LS_MODES:
         raise ValueError(f"ls_mode must be one of {', '.join(LS_MODES)}, got {ls_mode!r}")
+    n = len(rows)
+    per_row = {}
+    for name, v in (("R_th_f", R_th_f), ("cond_factor", cond_factor)):
+        if v is not None:
+            a = np.asarray(v, dtype=float)
+            if a.ndim > 1 or (a.ndim == 1 and len(a) != n):
+                raise ValueError(f"{name} must be a scalar or one value per row ({n}), got shape {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} must be finite")
+            per_row[name] = np.broadcast_to(a, (n,)).copy()
+    gi = None
+    if guess is not None:
+        if not getattr(guess, "state", None):
+            raise ValueError("guess has no warm-start state (give a VResult of solve_many)")
+        if guess_index is None:
+            if len(guess) != n:
+                raise ValueError(f"guess has {len(guess)} rows for {n} rows (give guess_index)")
+            gi = np.arange(n)
+        else:
+            gi = np.asarray(guess_index, dtype=np.intp)
+            if gi.shape != (n,) or np.any(gi >= len(guess)) or np.any(gi < -1):
+                raise ValueError(f"guess_index must give one row of guess (0..{len(guess) - 1}) or -1 per row")
+    elif guess_index is not None:
+        raise ValueError("guess_index without guess")
     with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays
-        return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar)
+        return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi,
+                           per_row.get("R_th_f"), per_row.get("cond_factor"))
 
 
-def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
+def _row_params(params: PlantParams, R_th_f, cond, i: int) -> PlantParams:
+    """The parameters of row i (``params`` with its own R_th_f and condenser factor)."""
+    kw = {}
+    if R_th_f is not None:
+        kw["R_th_f"] = float(R_th_f[i])
+    if cond is not None:
+        k = float(cond[i])
+        kw.update(CF_DSH=params.CF_DSH * k, CF_con=params.CF_con * k, CF_SC=params.CF_SC * k)
+    return params.replace(**kw) if kw else params
+
+
+def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, cond) -> VResult:
     t0 = time.process_time()
     amb_bar = params.ambient_pressure / BAR
     cols = _inputs(rows, p_m_sp, amb_bar)
@@ -205,7 +281,8 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
     T_ki = C_to_K(z(cols["T_sink_in"]))
     V_s, V_k = m3h_to_m3s(z(cols["V_source"])), m3h_to_m3s(z(cols["V_sink"]))
     p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
-    fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k)
+    fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k,
+                   R_th_f, cond)
     _precheck(fs, fluid, p_sp, status, reason, fallback)
     if force_scalar is not None:
         fallback |= (status == "") & np.asarray(force_scalar, dtype=bool)
@@ -215,34 +292,127 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar) -> VResult:
     todo = np.flatnonzero((status == "") & ~fallback)
     out = Outcome(n)
     ls_limit = np.full(n, "", dtype=object)
+    cold = np.zeros(n, dtype=bool)
+    ws = None
     if len(todo):
         # the cold path of every row; in "float" mode a row floats as soon as its outcome at the
         # input is final, beside the rows still being solved (model.vtasks)
         on_done = FloatLS(fs, T_m_sp, p_sp, T_c_max, out, ls_limit).task if ls_mode == "float" else None
-        run(solve_cold(fs, todo, T_m_sp, p_sp, T_c_max, out, on_done))
+
+        def go_cold(r, codes=None, msgs=None):
+            """The cold path of rows r (a task); ``codes``/``msgs``: the input point's failure the
+            cold branch test has found already ("float" mode goes on from there)."""
+            cold[r] = True
+            if codes is None:
+                return solve_cold(fs, r, T_m_sp, p_sp, T_c_max, out, on_done)
+            out.code[r], out.msg[r] = codes, msgs
+            return on_done(r)
+
+        tasks = []
+        if guess is not None:
+            cand = np.zeros(n, dtype=bool)
+            cand[todo] = True
+            g = take_state(guess.state, gi)
+            inputs = dict(T_si=T_si, T_so_in=T_so, T_ki=T_ki, V_s=V_s, V_k=V_k)
+            lost = cand & (gi >= 0) & ~usable(g, ls_mode)
+            if lost.any():
+                gi = borrow(guess.state, gi, lost, inputs, T_m_sp, ls_mode)
+                g = take_state(guess.state, gi)
+            plan = WarmPlan(n, cand, g, ls_mode, lost)
+            if len(plan.rows):
+                fs.append(plan.extra)
+                _seed_memory(fs, plan, g)
+                ws = WarmSolve(fs, plan, g, T_m_sp, p_sp, T_c_max, ls_mode)
+                tasks.append(ws.task(go_cold))
+            todo = np.setdiff1d(todo, plan.rows)
+            if len(todo) <= SCALAR_COLD_MAX:
+                # a few rows without a guess: the scalar solver (the vector cold path costs its
+                # rounds, 5-60, whatever its rows)
+                fallback[todo] = True
+                todo = todo[:0]
+        if len(todo):
+            tasks.append(go_cold(todo))
+        run(*tasks)
     t1 = t2 = time.process_time()
-    for i in todo:
+    for i in np.flatnonzero(cold):
         if out.code[i] == FALLBACK:
             fallback[i] = True
         elif out.code[i]:
             status[i], reason[i] = out.code[i], out.msg[i]
-    solved = np.flatnonzero((status == "") & ~fallback)
+    warm = np.zeros(n, dtype=bool)
+    state = empty_state(n)
+    state.update(T_si=T_si, T_so_in=T_so.copy(), T_ki=T_ki, V_s=V_s, V_k=V_k, T_m_sp=T_m_sp)
     values = _empty_values(n)
+    solved = np.flatnonzero(cold & (status == "") & ~fallback)
     if len(solved):
-        _assemble(fs, solved, out, ls_limit, values, status, reason, fallback, amb_bar)
-    t3 = time.process_time()
+        _assemble(fs, solved, solved, out.T_m[solved], out.T_c[solved], out.branch[solved] == HS_MAX,
+                  ls_limit[solved] != "", out.flag, out.flag_msg, values, status, reason, fallback, amb_bar)
+        _cold_state(fs, solved, out, ls_limit, state)
     branch = np.array(["", "sp", "hs_max", "hs_min"], dtype=object)[np.where(
-        (status == "") & ~fallback, out.branch + 1, 0)]
+        cold & (status == "") & ~fallback, out.branch + 1, 0)]
+    if ws is not None and ws.scalar.any():
+        fallback[ws.rows[ws.scalar]] = True      # the few rows that left the warm path
+    if ws is not None and ws.failed.any():
+        # rows whose cold branch test (run on the warm path for rows without a usable guess) failed
+        f = np.flatnonzero(ws.failed)
+        r = ws.rows[f]
+        status[r], reason[r], cold[r] = ws.fail_code[f], ws.fail_msg[f], True
+    if ws is not None and ws.ok.any():
+        pos = np.flatnonzero(ws.ok)
+        dst = ws.plan.rows[pos]
+        warm[dst] = True
+        src, T_m, T_c, br, lim, s = ws.results(pos)
+        no_flag = np.full(n, "", dtype=object)
+        _assemble(fs, src, dst, T_m, T_c, br == HS_MAX, lim != 0, no_flag, no_flag,
+                  values, status, reason, fallback, amb_bar, s=s)
+        ws.fill_state(pos, state)
+        named = status[dst] == ""               # as on the cold path: flagged rows have no branch name
+        branch[dst[named]] = np.array(["sp", "hs_max", "hs_min"], dtype=object)[br[named]]
+    t3 = time.process_time()
     for i in np.flatnonzero(fallback):
-        branch[i] = _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason)
+        branch[i] = _scalar_row(i, cols, _row_params(params, R_th_f, cond, i), fluid, ls_mode, amb_bar,
+                                values, status, reason, state)
     status[(status == "")] = "ok"
-    timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3}
-    return VResult(values, status, reason, branch, fallback, timings)
+    timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3,
+               "warm_rounds": ws.rounds if ws is not None else 0}
+    return VResult(values, status, reason, branch, fallback, timings, state, warm, cold & ~fallback)
+
+
+def _seed_memory(fs: Flowsheet, plan: WarmPlan, g: dict) -> None:
+    """The flowsheet's inner warm-start memory (speeds, subcooling) of the warm rows and their copies
+    from the guess: the inner iterations start where they ended."""
+    idx = np.concatenate([plan.rows, plan.n + np.arange(len(plan.extra))])
+    src = np.concatenate([plan.rows, plan.extra])
+    for k in ("n_LS", "n_HS", "d_SC", "dT_SC", "phi_HS"):
+        v = g[k][src]
+        good = np.isfinite(v)
+        getattr(fs, k)[idx[good]] = v[good]
+
+
+def _cold_state(fs: Flowsheet, rows, out: Outcome, ls_limit, state: dict) -> None:
+    """The warm-start state of rows solved on the cold path."""
+    state["branch"][rows] = out.branch[rows]
+    state["T_m"][rows], state["T_c"][rows] = out.T_m[rows], out.T_c[rows]
+    state["T_so"][rows] = fs.T_so[rows]
+    lim = ls_limit[rows]
+    state["ls_limit"][rows] = np.where(lim == "max", 1, np.where(lim == "min", -1, 0))
+    fl = lim != ""
+    state["in_branch"][rows] = np.where(fl, out.in_branch[rows], out.branch[rows])
+    state["in_T_m"][rows] = np.where(fl, out.in_T_m[rows], out.T_m[rows])
+    state["in_T_c"][rows] = np.where(fl, out.in_T_c[rows], out.T_c[rows])
+    state["T_c_sp"][rows] = out.T_c_sp[rows]
+    for k in ("n_LS", "n_HS", "d_SC", "dT_SC", "phi_HS"):
+        state[k][rows] = getattr(fs, k)[rows]
 
 
 def _precheck(fs: Flowsheet, fluid, p_sp, status, reason, fallback) -> None:
-    """The checks of ``_Point`` and ``_solve`` before any iteration, in their order."""
-    for i in np.flatnonzero(status == ""):
+    """The checks of ``_Point`` and ``_solve`` before any iteration, in their order (rows that
+    pass them all, the usual case, are found at once)."""
+    n = len(status)
+    dT = fs.T_si[:n] - fs.T_so[:n]
+    fine = ((fs.C_s[:n] > 0.0) & (dT > 0.0) & (fs.T_e[:n] > fluid.T_triple + 1.0) & fs.src_ok[:n]
+            & (fs.C_w[:n] > 0.0) & (p_sp < fluid.p_crit))
+    for i in np.flatnonzero((status == "") & ~fine):
         C, dT = fs.C_s[i], fs.T_si[i] - fs.T_so[i]
         if not (C > 0.0 and dT > 0.0):
             status[i] = "bad_source"
@@ -271,17 +441,20 @@ def _empty_values(n: int) -> dict:
     return values
 
 
-def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reason, fallback, amb_bar) -> None:
-    """Every output of ``CycleResult.to_dict`` at the solved (T_m, T_c) of the rows, and the limit
-    checks of ``model.cycle._check_limits``."""
+def _assemble(fs: Flowsheet, rows, dst, T_m, T_c, hs_sat, ls_sat, flag, flag_msg, values, status, reason,
+              fallback, amb_bar, s: dict | None = None) -> None:
+    """Every output of ``CycleResult.to_dict`` at the solved (T_m, T_c) of the flowsheet rows
+    ``rows`` into the output rows ``dst`` (``s``: the flowsheet's full evaluation there, when known),
+    and the limit checks of ``model.cycle._check_limits``; ``flag``/``flag_msg`` (per output row): a
+    status the solver set."""
     par, tab = fs.par, fs.tab
     ls_c, hs_c = par.comp_LS, par.comp_HS
-    T_m, T_c = out.T_m[rows], out.T_c[rows]
-    s = fs.evaluate(rows, T_m, T_c, full=True)
+    if s is None:
+        s = fs.evaluate(rows, T_m, T_c, full=True)
     bad = s["err"] != 0
     th2 = tab.theta_from_h(T_m, s["h2"], s["h_g_m"])
     bad |= ~np.isfinite(th2)
-    fallback[rows[bad]] = True                # not expected: the path solved these points
+    fallback[dst[bad]] = True                 # not expected: the path solved these points
     m_LS, m_HS = s["m_LS"], s["m_HS"]
     h1, h2, h4, h_g_m = fs.h1[rows], s["h2"], s["h4"], s["h_g_m"]
     W_LS = m_LS * (h2 - h1) * ls_c.drive_factor
@@ -309,19 +482,19 @@ def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reaso
         "pinch_K": pinch, "dp_source_bar": par.CF_dp_f * par.dp_clean(fs.V_s[rows]) / BAR,
         "T_dis_LS_C": K_to_C(T_m + th2), "T_dis_HS_C": K_to_C(T4),
         "energy_residual": (Q_source + W_shaft - Q_sink) / Q_sink,
-        "hs_saturated": out.branch[rows] == HS_MAX, "T_source_out_C": K_to_C(fs.T_so[rows]),
-        "ls_saturated": ls_limit[rows] != "",
+        "hs_saturated": hs_sat, "T_source_out_C": K_to_C(fs.T_so[rows]),
+        "ls_saturated": ls_sat,
         "Q_SC_kW": s["Q_SC"] / 1e3, "T_SC_C": K_to_C(T_SC_out), "h_SC_J_kg": s["h_SC"],
         "h_con_out_J_kg": s["h_f_c"], "T_w_SC_out_C": K_to_C(s["T_w1"]),
     }
     keep = ~bad
     for k, a in v.items():
-        values[k][rows[keep]] = a[keep]
+        values[k][dst[keep]] = a[keep]
     tol = LS_SPEED_LOOSE * ls_c.N_nom
     for j in np.flatnonzero(keep):
-        i = rows[j]
-        if out.flag[i]:
-            status[i], reason[i] = out.flag[i], out.flag_msg[i]
+        i = dst[j]
+        if flag[i]:
+            status[i], reason[i] = flag[i], flag_msg[i]
         elif N_LS[j] > ls_c.N_max + tol:
             status[i] = "ls_speed_high"
             reason[i] = f"LS compressor speed {N_LS[j]:.0f} rpm above its maximum {ls_c.N_max:.0f} rpm"
@@ -332,9 +505,9 @@ def _assemble(fs: Flowsheet, rows, out: Outcome, ls_limit, values, status, reaso
             status[i], reason[i] = "negative_pinch", f"negative pinch {pinch[j]:.3f} K in the condenser unit"
 
 
-def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason) -> str:
-    """Row i by ``model.cycle.solve`` without a guess (the reference), into the outputs; returns
-    the branch of its solution ("" where none)."""
+def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason, state) -> str:
+    """Row i by ``model.cycle.solve`` without a guess (the reference), into the outputs and the
+    warm-start state; returns the branch of its solution ("" where none)."""
     vals = {c: cols[c][i] for c in INPUT_COLUMNS}
     try:
         res = solve(inputs_from_row(vals, amb_bar), params, fluid=fluid, ls_mode=ls_mode)
@@ -353,6 +526,11 @@ def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason
              "h_con_out_J_kg": res.states["con_out"].h, "T_w_SC_out_C": K_to_C(res.T_w_SC_out)}
     for k, v in extra.items():
         values[k][i] = v
+    state["branch"][i] = ("sp", "hs_max", "hs_min").index(res.branch)
+    state["T_m"][i], state["T_c"][i], state["T_so"][i] = res.T_m, res.T_c, res.T_source_out
+    state["ls_limit"][i] = {"max": 1, "min": -1}.get(res.ls_limit, 0)
+    if not res.ls_limit:                      # the input point of a floating row is not kept
+        state["in_branch"][i], state["in_T_m"][i], state["in_T_c"][i] = state["branch"][i], res.T_m, res.T_c
     return res.branch
 
 
@@ -376,6 +554,50 @@ def bench_rows(n_ops: int) -> pd.DataFrame:
     df = ops.loc[ops.index.repeat(len(BENCH_SET_POINTS))].reset_index(drop=True)
     df["p_m_sp"] = np.tile(BENCH_SET_POINTS, len(ops))
     return df
+
+
+def bench_sample_rows(n: int = 40) -> pd.DataFrame:
+    """n operating points of ``bench_rows`` at one set point each (a window's sample minutes),
+    spread over 8.5..22.5 bar(g)."""
+    df = bench_rows(n)
+    k = len(BENCH_SET_POINTS)
+    pick = np.arange(n) * k + 2 + (np.arange(n) * 7) % (k - 10)
+    return df.iloc[pick].reset_index(drop=True)
+
+
+def bench_warm(params: PlantParams, rows: pd.DataFrame, ls_mode: str, repeat: int = 5,
+               shift: float = 0.5) -> dict:
+    """CPU time [ms] of ``solve_many`` on ``rows`` cold, and warm-started from the same rows solved
+    ``shift`` bar lower; how many rows went warm, cold, to the scalar path, and how the warm answers
+    compare with the cold ones (statuses, largest relative deviation)."""
+    def cpu(f, k):
+        best, res = math.inf, None
+        for _ in range(k):
+            t0 = time.process_time()
+            res = f()
+            best = min(best, time.process_time() - t0)
+        return best, res
+
+    guess = solve_many(rows.assign(p_m_sp=rows["p_m_sp"] - shift), params, ls_mode=ls_mode)
+    t_c, cold = cpu(lambda: solve_many(rows, params, ls_mode=ls_mode), max(2, repeat // 2))
+    t_w, warm = cpu(lambda: solve_many(rows, params, ls_mode=ls_mode, guess=guess), repeat)
+    # the same without the rows that have no solution here or in the guess (their cold paths set
+    # the time of a warm call)
+    sub = rows[guess.solved() & cold.solved()].reset_index(drop=True)
+    g_sub = solve_many(sub.assign(p_m_sp=sub["p_m_sp"] - shift), params, ls_mode=ls_mode)
+    t_s, w_sub = cpu(lambda: solve_many(sub, params, ls_mode=ls_mode, guess=g_sub), repeat)
+    both = cold.solved() & warm.solved()
+    dev = max((float(np.max(np.abs(warm[c][both] - cold[c][both]) / np.abs(cold[c][both])))
+               for c in BENCH_COMPARED), default=0.0) if both.any() else 0.0
+    return {"rows": len(rows), "cold_cpu_ms": round(t_c * 1e3, 2), "warm_cpu_ms": round(t_w * 1e3, 2),
+            "speedup": round(t_c / t_w, 1), "warm_rows": warm.warm_rows, "cold_rows": warm.cold_rows,
+            "fallback_rows": warm.fallback_rows, "warm_rounds": warm.timings.get("warm_rounds", 0),
+            "status_mismatch_vs_cold": int((warm.status != cold.status).sum()),
+            "max_rel_deviation_vs_cold": dev,
+            "statuses": {s: int(c) for s, c in zip(*np.unique(warm.status, return_counts=True))},
+            "solved_rows_only": {"rows": len(sub), "warm_cpu_ms": round(t_s * 1e3, 2),
+                                 "warm_rows": w_sub.warm_rows, "cold_rows": w_sub.cold_rows,
+                                 "fallback_rows": w_sub.fallback_rows}}
 
 
 def bench_vcycle(params: PlantParams | None = None, ls_mode: str = "float", ops=(8, 40), repeat: int = 5) -> dict:
@@ -426,7 +648,10 @@ def bench_vcycle(params: PlantParams | None = None, ls_mode: str = "float", ops=
                                                              .to_numpy()[both])) if both.any() else math.nan,
             "max_abs_energy_residual": float(np.nanmax(np.abs(got["energy_residual"]))),
         })
-    out["target"] = {"rows": 200, "vector_cpu_ms": 5.0}
+    # warm starts: the same rows solved 0.5 bar lower as the guess (bench_warm)
+    out["warm"] = [bench_warm(params, bench_sample_rows(40), ls_mode, repeat)]
+    out["warm"] += [bench_warm(params, bench_rows(k), ls_mode, repeat) for k in ops]
+    out["target"] = {"rows": 200, "vector_cpu_ms": 5.0, "warm_200_rows_cpu_ms": 5.0, "warm_40_rows_cpu_ms": 3.0}
     return out
 
 
@@ -442,4 +667,13 @@ def _reference_row(row, params: PlantParams, ls_mode: str):
 if __name__ == "__main__":   # pragma: no cover
     import json
     import sys
-    print(json.dumps(bench_vcycle(ls_mode=sys.argv[1] if len(sys.argv) > 1 else "float"), indent=2))
+    if len(sys.argv) > 2 and sys.argv[2] == "warm":          # python -m model.vcycle float warm
+        import yaml
+        from pathlib import Path
+        with open(Path(__file__).resolve().parent.parent / "config" / "plant.yaml", encoding="utf-8") as fh:
+            plant = PlantParams.from_dict(yaml.safe_load(fh))
+        mode = sys.argv[1]
+        print(json.dumps([bench_warm(plant, bench_sample_rows(40), mode)]
+                         + [bench_warm(plant, bench_rows(k), mode) for k in (8, 40)], indent=2))
+    else:
+        print(json.dumps(bench_vcycle(ls_mode=sys.argv[1] if len(sys.argv) > 1 else "float"), indent=2))

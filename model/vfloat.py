@@ -49,6 +49,7 @@ class FloatLS:
         self.fs, self.T_m_sp, self.p_sp, self.T_c_max = fs, T_m_sp, p_sp, T_c_max
         self.out, self.ls_limit = out, ls_limit
         self.slots: Flowsheet | None = None
+        self.n = fs.n            # the rows it floats (rows appended later are the warm path's)
 
     def task(self, todo):
         """Float T_source,out for the rows of ``todo`` that need it (see the module docstring): the
@@ -69,6 +70,7 @@ class FloatLS:
                 n_b = np.concatenate([np.full(high.sum(), n_hi), np.full(low.sum(), n_lo)])
                 x0 = T_in[rows] - (T_in[rows] - T_sp[rows]) * n_b / np.concatenate([n_LS[high], n_LS[low]])
                 limit_max = np.concatenate([np.ones(high.sum(), bool), np.zeros(low.sum(), bool)])
+                out.note_input(rows)
                 yield Spawn(self._float(rows, x0, limit_max, None))
         # rows that cannot be solved at the input for too much duty: the far end decides
         over = todo[np.isin(out.code[todo], OVERLOAD)]
@@ -153,9 +155,8 @@ class FloatLS:
         """(flowsheet of four copies of every row, row count)."""
         fs = self.fs
         if self.slots is None:
-            self.slots = Flowsheet(fs.par, fs.tab, fs.ls, fs.hs,
-                                   *(np.tile(a, 4) for a in (fs.T_si, fs.T_so, fs.T_ki, fs.V_s, fs.V_k)))
-        return self.slots, fs.n
+            self.slots = fs.copy(np.tile(np.arange(self.n), 4))
+        return self.slots, self.n
 
 
 def _float_sp(fs: Flowsheet, rows, T_m_sp, T_sp, n_b, lo, hi, T_c_max, state: dict, at):

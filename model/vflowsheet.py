@@ -67,6 +67,17 @@ class MSide:
         return MSide(np.concatenate([p.a for p in parts], axis=1))
 
 
+def speed_v(comp, m, rho_suc, pi, n0):
+    """``comp.speed_for_flow_v`` with rows whose inputs are not finite (rows failing upstream) kept
+    out of its iteration, NaN for them: ``Compressor.speed_for_flow_v`` iterates until the largest
+    step of all rows is small, and a NaN step ends it for every row after one step."""
+    ok = np.isfinite(m) & np.isfinite(rho_suc) & np.isfinite(pi)
+    if ok.all():
+        return comp.speed_for_flow_v(m, rho_suc, pi, n0)
+    n, ev = comp.speed_for_flow_v(np.where(ok, m, 1.0), np.where(ok, rho_suc, 10.0), np.where(ok, pi, 2.0), n0)
+    return np.where(ok, n, np.nan), np.where(ok, ev, np.nan)
+
+
 def counterflow_eps_v(C_a, C_b, UA):
     """``model.components.counterflow_eps`` for arrays: (effectiveness, C_min)."""
     C_min = np.minimum(C_a, C_b)
@@ -86,20 +97,30 @@ class Flowsheet:
     T_si, T_so, T_ki : source in, source out, sink in [K]; V_s, V_k : source, sink flow [m^3/s].
     comp_LS, comp_HS : objects with the vectorised compressor protocol. Expects numpy's floating-
     point warnings off (``np.errstate(all="ignore")``) around its use: failed rows carry NaN.
+    R_th_f : per-row evaporator fouling resistance [K/W] in place of ``params.R_th_f`` (None: the
+    params'); cond : per-row factor on CF_DSH, CF_con and CF_SC (``model.analysis.chain.
+    scale_condenser``; None: 1). The conductances are computed as ``params.replace(...)`` would give
+    them, to the bit.
     """
 
     def __init__(self, params: PlantParams, tab: CycleTables, comp_LS, comp_HS,
-                 T_si, T_so, T_ki, V_s, V_k) -> None:
+                 T_si, T_so, T_ki, V_s, V_k, R_th_f=None, cond=None) -> None:
         self.par, self.tab, self.ls, self.hs = params, tab, comp_LS, comp_HS
         n = len(T_si)
         self.n = n
         self.T_si, self.T_ki, self.V_s, self.V_k = T_si, T_ki, V_s, V_k
+        self.R_th_f, self.cond = R_th_f, cond
         rc = params.cp_w * params.rho_w
         self.C_s = rc * V_s
         self.C_w = rc * V_k
-        self.UA_DSH = params.CF_DSH * params.U_DSH * params.A_DSH
-        self.UA_con = params.CF_con * params.U_con * params.A_con
-        self.UA_SC = params.CF_SC * params.U_SC * params.A_SC
+        if R_th_f is None:
+            self.UA_eva = np.full(n, params.UA_eva)
+        else:
+            self.UA_eva = 1.0 / (1.0 / params.UA_eva_clean + np.asarray(R_th_f, dtype=float))
+        k = np.ones(n) if cond is None else np.asarray(cond, dtype=float)
+        self.UA_DSH = (params.CF_DSH * k) * params.U_DSH * params.A_DSH
+        self.UA_con = (params.CF_con * k) * params.U_con * params.A_con
+        self.UA_SC = (params.CF_SC * k) * params.U_SC * params.A_SC
         with np.errstate(all="ignore"):
             self.eps_con = 1.0 - np.exp(-self.UA_con / self.C_w)
         self.T_so = np.array(T_so, dtype=float)
@@ -119,7 +140,7 @@ class Flowsheet:
         par, tab = self.par, self.tab
         C = self.C_s[idx]
         Q = C * (self.T_si[idx] - T_so)
-        T_e = evaporator_T_e(self.T_si[idx], T_so, par.UA_eva, C)
+        T_e = evaporator_T_e(self.T_si[idx], T_so, self.UA_eva[idx], C)
         p_e, _, h_g, _, _ = tab.sat(T_e)
         h1, s1, rho1 = tab.vapour(T_e, np.full(len(T_e), par.superheat))
         ok = np.isfinite(p_e) & np.isfinite(h1) & np.isfinite(rho1) & (T_e <= VAP_T_MAX)
@@ -131,12 +152,39 @@ class Flowsheet:
         (self.Q_s[idx], self.T_e[idx], self.p_e[idx], self.h_g_e[idx], self.h1[idx], self.s1[idx],
          self.rho1[idx], self.src_ok[idx]) = self.source(idx, T_so)
 
+    ROW_ARRAYS = ("T_si", "T_ki", "V_s", "V_k", "C_s", "C_w", "UA_eva", "UA_DSH", "UA_con", "UA_SC", "eps_con",
+                  "T_so", "Q_s", "T_e", "p_e", "h_g_e", "h1", "s1", "rho1", "src_ok", "n_LS", "n_HS", "d_SC",
+                  "phi_HS", "dT_SC")
+
+    def append(self, sel) -> np.ndarray:
+        """Append copies of the rows ``sel`` (their inputs, parameters, source state and memory);
+        returns the new rows' indices."""
+        sel = np.asarray(sel, dtype=np.intp)
+        for name in self.ROW_ARRAYS:
+            a = getattr(self, name)
+            setattr(self, name, np.concatenate([a, a[sel]]))
+        for name in ("R_th_f", "cond"):
+            a = getattr(self, name)
+            if a is not None:
+                a = np.asarray(a, dtype=float)
+                setattr(self, name, np.concatenate([a, a[sel]]))
+        new = self.n + np.arange(len(sel))
+        self.n += len(sel)
+        return new
+
+    def copy(self, sel) -> "Flowsheet":
+        """A flowsheet of the rows ``sel`` (a row may appear several times) at their present
+        T_source,out, with their parameters; fresh warm-start memory."""
+        pick = lambda a: None if a is None else np.asarray(a, dtype=float)[sel]   # noqa: E731
+        return Flowsheet(self.par, self.tab, self.ls, self.hs, self.T_si[sel], self.T_so[sel],
+                         self.T_ki[sel], self.V_s[sel], self.V_k[sel], pick(self.R_th_f), pick(self.cond))
+
     def ls_speed_at(self, idx, T_so, T_m) -> np.ndarray:
         """The LS speed ratio [-] of the rows idx at T_source,out T_so and T_m [K] (the LS side alone;
         the rows' stored state is left as it is, so a row may appear several times)."""
         Q, _, p_e, _, h1, _, rho1, _ = self.source(idx, T_so)
         p_m, h_f_m = self.tab.sat(T_m)[:2]
-        return self.ls.speed_for_flow_v(Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
+        return speed_v(self.ls, Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
 
     def ls_speed(self, idx, T_m, sat_m=None):
         """LS speed ratio [-], eta_vol, m_LS [kg/s] and pressure ratio for the rows idx: the LS side
@@ -144,7 +192,7 @@ class Flowsheet:
         p_m, h_f_m = (sat_m[0], sat_m[1]) if sat_m is not None else self.tab.sat(T_m)[:2]
         m_LS = self.Q_s[idx] / (self.h1[idx] - h_f_m)
         pi = p_m / self.p_e[idx]
-        n_LS, ev = self.ls.speed_for_flow_v(m_LS, self.rho1[idx], pi, self.n_LS[idx])
+        n_LS, ev = speed_v(self.ls, m_LS, self.rho1[idx], pi, self.n_LS[idx])
         return n_LS, ev, m_LS, pi
 
     # ---- intermediate side: fixed by T_m ----------------------------------------------------------
@@ -192,7 +240,7 @@ class Flowsheet:
         pi_HS = p_c / ms["p_m"]
         phi = m / ms["rho_g_m"]                      # the swept flow the HS must move, times V_s
         n0 = self.n_HS[idx] * (phi / self.phi_HS[idx])   # speed about proportional to it
-        n_HS, ev_HS = hs.speed_for_flow_v(m, ms["rho_g_m"], pi_HS, np.where(n0 == n0, n0, self.n_HS[idx]))
+        n_HS, ev_HS = speed_v(hs, m, ms["rho_g_m"], pi_HS, np.where(n0 == n0, n0, self.n_HS[idx]))
         eta_HS = hs.eta_is_v(pi_HS, n_HS)
         ds = ms["s_g_m"] - s_g_c
         h4s = tab.isen_raw(Tq, ds)
@@ -204,7 +252,7 @@ class Flowsheet:
         Q_con = self.eps_con[idx] * C_w * (T_c - T_w1)
         T_w2 = T_w1 + Q_con / C_w
         cp_v = (h4 - h_g_c) / th4
-        eps_D, C_min_D = counterflow_eps_v(m * cp_v, C_w, self.UA_DSH)
+        eps_D, C_min_D = counterflow_eps_v(m * cp_v, C_w, self.UA_DSH[idx])
         Q_DSH = eps_D * C_min_D * (T4 - T_w2)
         Q_DSH_max = m * dh
         dsh_condensing = Q_DSH > Q_DSH_max
@@ -251,7 +299,7 @@ class Flowsheet:
     def _subcooler(self, idx, T_c, dT, num, h_g_m, h_f_c, C_w):
         """(m_HS [kg/s], h_SC [J/kg], subcooling d [K], ok) of the subcooler and the intercooler:
         Newton on d (module docstring), warm-started from the row's last subcooling."""
-        tab, UA = self.tab, self.UA_SC
+        tab, UA = self.tab, self.UA_SC[idx]
         row = tab.liq_row(T_c)
         d = self.d_SC[idx] * (dT / self.dT_SC[idx])    # the subcooling scales about with the lift
         cold = ~((d > 0.0) & (d < dT) & (d <= LIQ_D_MAX))
@@ -262,6 +310,7 @@ class Flowsheet:
             eps, C_min = counterflow_eps_v(C0, C_w, UA)
             d = np.where(cold, eps * C_min * dT / C0, d)
             d = np.where((d > 0.0) & (d < dT) & (d <= LIQ_D_MAX), d, 0.5 * np.minimum(dT, LIQ_D_MAX))
+            d = np.where(d == d, d, 1.0)
         d_hi = np.minimum(dT, LIQ_D_MAX)
         for _ in range(SC_ITER):
             h, h_T = tab.liq_raw(row, d)
@@ -283,6 +332,8 @@ class Flowsheet:
                 h = h + h_T * (d - d_new)
                 return num / (h_g_m - h), h, d_new, (d_new > 1e-6) & (d_new == d_new)
             dn = d - step
+            dn = np.where(dn == dn, dn, 0.5 * d)     # a row without a step (NaN upstream) keeps a
+            #                                          valid table index (it fails: sc_ok False)
             d = np.where(small, d, np.where(dn <= 0.0, 0.5 * d, np.where(dn > d_hi, 0.5 * (d + d_hi), dn)))
             if not np.all(small | (step != step)):
                 continue

@@ -78,7 +78,12 @@ def _reason_of(e: int) -> str:
 class Outcome:
     """Per-row result of the cold path: ``code`` ('' where solved, else the scalar's reason code or
     "fallback"), ``msg`` (the reason text), ``branch`` (SP/HS_MAX/HS_MIN), T_m, T_c [K]; ``flag``
-    and ``flag_msg`` where a solved row's status is the solver's (not the limit checks')."""
+    and ``flag_msg`` where a solved row's status is the solver's (not the limit checks').
+
+    For warm starts of a later call (``model.vwarm``): ``T_c_sp`` [K], the condensing temperature
+    of the branch test at the set point (rows at an HS bound); ``in_branch``, ``in_T_m``,
+    ``in_T_c``: the solution at the input's T_source,out of a row whose LS floated (-1/NaN
+    elsewhere: there it is the row's solution)."""
 
     def __init__(self, n: int) -> None:
         self.code = np.full(n, "", dtype=object)
@@ -88,6 +93,14 @@ class Outcome:
         self.T_c = np.full(n, np.nan)
         self.flag = np.full(n, "", dtype=object)       # a solved row's status set by the solver
         self.flag_msg = np.full(n, "", dtype=object)
+        self.T_c_sp = np.full(n, np.nan)
+        self.in_branch = np.full(n, -1, dtype=np.int8)
+        self.in_T_m = np.full(n, np.nan)
+        self.in_T_c = np.full(n, np.nan)
+
+    def note_input(self, rows) -> None:
+        """The rows' present solution is their input point's (before their LS floats)."""
+        self.in_branch[rows], self.in_T_m[rows], self.in_T_c[rows] = self.branch[rows], self.T_m[rows], self.T_c[rows]
 
     def fail(self, rows, codes, msgs) -> None:
         for r, c, m in zip(rows, codes, msgs):
@@ -124,11 +137,11 @@ class Raised:
         self.cls[pos] = 0
 
 
-def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
+def secant_v(F, x0, slope0, tol: float, lo, hi, what: str, on_conv=None):
     """``model.cycle._secant`` for many rows (a task): ``yield from F(pos, x)`` -> (f, ok) evaluates
     the rows at positions pos (ok False where the evaluation raised; F records what). Returns (x, fx,
     slope, kind, msg): kind 0 converged, 1 an evaluation raised, 2 the secant raised
-    ConvergenceError (msg its text)."""
+    ConvergenceError (msg its text). ``on_conv(pos, x)``: called as rows converge."""
     n = len(x0)
     x = np.minimum(np.maximum(x0, lo), hi)
     kind = np.full(n, -1, dtype=np.int8)         # -1 still iterating
@@ -138,6 +151,8 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
     fx = np.array(fx, dtype=float)
     kind[~ok] = 1
     kind[ok & (np.abs(fx) < tol)] = 0
+    if on_conv is not None and (kind == 0).any():
+        on_conv(pos[kind == 0], x[kind == 0])
     slope = np.array(slope0, dtype=float)
     act = np.flatnonzero(kind == -1)
     need = act[~((slope[act] != 0.0) & np.isfinite(slope[act]))]
@@ -182,6 +197,8 @@ def secant_v(F, x0, slope0, tol: float, lo, hi, what: str):
         act = act[ok]
         conv = np.abs(fx[act]) < tol
         kind[act[conv]] = 0
+        if on_conv is not None and conv.any():
+            on_conv(act[conv], x[act[conv]])
         act = act[~conv]
     for k in act:
         kind[k], msg[k] = 2, f"{what}: no convergence in {MAX_ITER} iterations (residual {fx[k]:.3g})"
@@ -200,9 +217,10 @@ class TcSolver:
         self.T_c_lo = fs.T_ki[idx] + 0.05
         self.T_c_max = T_c_max
 
-    def solve(self, pos, T_m, raised: Raised, ms: MSide | None = None):
+    def solve(self, pos, T_m, raised: Raised, ms: MSide | None = None, on_conv=None):
         """(T_c, n_HS) at T_m [K] for the positions pos (a task); NaN and an entry in ``raised``
-        (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c)."""
+        (indexed by position) where solve_Tc raises, after its diagnosis (p_c_high, p_m_above_p_c).
+        ``on_conv(positions, T_c, n_HS)``: called as rows converge (their answer is final then)."""
         fs, idx = self.fs, self.idx[pos]
         lo = np.maximum(self.T_c_lo[pos], T_m + 0.05)
         hi = np.full(len(pos), self.T_c_max)
@@ -222,7 +240,8 @@ class TcSolver:
             return ev["r"], ev["err"] == E_OK
 
         x0 = np.minimum(np.maximum(self.T_c_guess[pos], lo + 0.5), hi)
-        x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC)
+        done = None if on_conv is None else (lambda p, x: on_conv(pos[p], x, n_HS[p]))   # noqa: E731
+        x, _, slope, kind, msg = yield from secant_v(F, x0, self.slope_c[pos], ENERGY_TOL, lo, hi, _WHAT_TC, done)
         ms = have[0]
         sec = np.flatnonzero(kind == 2)
         sub.put(sec, np.ones(len(sec), dtype=np.int8), ["no_convergence"] * len(sec), msg[sec])
@@ -375,6 +394,7 @@ def solve_cold(fs: Flowsheet, idx, T_m_sp, p_m_sp, T_c_max: float, out: Outcome,
     if len(test):
         # the branch test: the HS speed needed AT the set point
         T_c, n_sp = yield from tc.solve(test, T_m_sp[test], raised)
+        out.T_c_sp[idx[test]] = T_c
         up, down = n_sp > n_max + SPEED_TOL, n_sp < n_min - SPEED_TOL
         branch[test] = np.where(up, HS_MAX, np.where(down, HS_MIN, SP))
         lo[test] = np.where(down, T_e[test] + 0.05, T_m_sp[test])

@@ -353,3 +353,143 @@ def test_tables_agree_with_heos():
     ref = [fl.liquid_pT(fl.sat_T(float(a)).p, float(a - b)) for a, b in zip(T_c, d)]
     assert np.max(np.abs(h_l - ref)) < 3e-3
     assert np.isnan(tab.vapour(np.array([150.0]), np.array([10.0]))[0]).all()   # outside: NaN
+
+
+# ---------------------------------------------------------------------------------------------------
+# 5. warm starts (solve_many(guess=...)) and per-row parameters
+# ---------------------------------------------------------------------------------------------------
+# Status rule for a warm start: every row has the cold solve's status, except a row whose cold or warm
+# answer sits within a small distance of a limit that decides a status or a branch: N_LS within
+# NEAR_LS_RPM of a speed bound or of a flag threshold (bound -+ LS_SPEED_LOOSE * N_nom), N_HS at a
+# speed bound within NEAR_HS_REL, the pinch within NEAR_PINCH_K of 0.
+NEAR_LS_RPM = 1.5
+NEAR_HS_REL = 1e-6
+NEAR_PINCH_K = 1e-6
+
+
+def near_limit_warm(params, a: pd.Series, b: pd.Series) -> bool:
+    ls, hs = params.comp_LS, params.comp_HS
+    tol = LS_SPEED_LOOSE * ls.N_nom
+    for r in (a, b):
+        n_ls, n_hs, pinch = r["N_LS_rpm"], r["N_HS_rpm"], r["pinch_K"]
+        if math.isfinite(n_ls) and min(abs(n_ls - x) for x in (ls.N_min, ls.N_max, ls.N_min - tol,
+                                                               ls.N_max + tol)) <= NEAR_LS_RPM:
+            return True
+        if math.isfinite(n_hs) and min(abs(n_hs / x - 1.0) for x in (hs.N_min, hs.N_max)) <= NEAR_HS_REL:
+            return True
+        if math.isfinite(pinch) and abs(pinch) <= NEAR_PINCH_K:
+            return True
+    return False
+
+
+def check_warm(params, df: pd.DataFrame, ls_mode: str, guess, min_warm: float = 0.5, **kw) -> dict:
+    """The warm solve against the cold one (solve_many without a guess: the scalar cold path)."""
+    cold = solve_many(df, params, ls_mode=ls_mode, **kw)
+    vr = solve_many(df, params, ls_mode=ls_mode, guess=guess, **kw)
+    got, ref = vr.frame(), cold.frame()
+    n = len(df)
+    assert vr.warm_rows + vr.cold_rows + vr.fallback_rows <= n
+    assert vr.warm_rows >= min_warm * cold.solved().sum()
+    differ = np.flatnonzero(got["status"].to_numpy() != ref["status"].to_numpy())
+    exempt = [i for i in differ if near_limit_warm(params, got.iloc[i], ref.iloc[i])]
+    assert len(exempt) == len(differ), got.iloc[[i for i in differ if i not in exempt]][["status", "reason"]]
+    assert len(exempt) <= 0.005 * n
+    solved = got["Q_sink_kW"].notna().to_numpy() & ref["Q_sink_kW"].notna().to_numpy()
+    same = np.setdiff1d(np.arange(n), differ)
+    assert (got["Q_sink_kW"].notna() == ref["Q_sink_kW"].notna()).to_numpy()[same].all()
+    near = [i for i in range(n) if near_limit_warm(params, got.iloc[i], ref.iloc[i])]
+    assert (vr.branch == cold.branch)[np.setdiff1d(same, near)].all()
+    for k in COMPARED:
+        rel = np.abs(got[k].to_numpy() - ref[k].to_numpy()) / np.abs(ref[k].to_numpy())
+        assert rel[solved].max() <= AGREE_REL, (k, rel[solved].max())
+    dT = np.abs(got["T_source_out_C"].to_numpy() - ref["T_source_out_C"].to_numpy())[solved]
+    assert dT.max() <= T_SO_ABS
+    assert np.abs(got["energy_residual"].to_numpy()[solved]).max() <= ENERGY_TOL
+    return {"warm": vr.warm_rows, "cold": vr.cold_rows, "fallback": vr.fallback_rows, "result": vr}
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+@pytest.mark.parametrize("shift", [0.5, -0.5])
+def test_warm_from_a_nearby_set_point_gives_the_cold_answers(plant, ls_mode, shift):
+    df = grid(full=False)
+    guess = solve_many(df.assign(p_m_sp=df["p_m_sp"] - shift), plant, ls_mode=ls_mode)
+    info = check_warm(plant, df, ls_mode, guess)
+    assert info["warm"] > 150
+    # and again from that warm result (its state is a guess too), at the next set point
+    check_warm(plant, df.assign(p_m_sp=df["p_m_sp"] + shift), ls_mode, info["result"])
+
+
+def test_warm_on_the_full_grid_gives_the_cold_answers(plant):
+    """The full grid reaches far beyond the LS stage (N_LS up to 3300 rpm), where the cold search at
+    an HS bound depends on its path: those rows must leave the warm path."""
+    df = grid(full=True)
+    guess = solve_many(df.assign(p_m_sp=df["p_m_sp"] + 0.5), plant.replace(R_th_f=plant.R_th_f + 1e-6),
+                       ls_mode="float")
+    check_warm(plant, df, "float", guess)
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_warm_after_a_fouling_step_gives_the_cold_answers(plant, ls_mode):
+    df = grid(full=False)
+    guess = solve_many(df, plant, ls_mode=ls_mode)
+    check_warm(plant.replace(R_th_f=plant.R_th_f + 1e-6), df, ls_mode, guess)    # +1e-3 K/kW
+
+
+def test_warm_onto_an_uncertainty_draw_of_the_learned_curves(learned, learned_delta):
+    df = grid(full=False).iloc[::2].reset_index(drop=True)
+    guess = solve_many(df, learned, ls_mode="float")
+    check_warm(learned_delta, df, "float", guess)
+
+
+def test_a_guess_from_unrelated_rows_still_gives_the_cold_answers(plant):
+    df = grid(full=False)
+    rng = np.random.default_rng(5)
+    other = solve_many(df.sample(frac=1.0, random_state=2).reset_index(drop=True), plant, ls_mode="float")
+    check_warm(plant, df, "float", other, min_warm=0.0)
+    # rows of another plant's operating points entirely, mapped at random (-1: no guess)
+    far = solve_many(grid(full=False).assign(T_sink_in=30.0, V_sink=90.0).iloc[:60], plant, ls_mode="float")
+    index = rng.integers(-1, 60, len(df))
+    cold = solve_many(df, plant, ls_mode="float")
+    vr = solve_many(df, plant, ls_mode="float", guess=far, guess_index=index)
+    assert (vr.status == cold.status).all()
+    np.testing.assert_allclose(vr["COP"], cold["COP"], rtol=AGREE_REL)
+    assert not vr.warm[index < 0].any()
+
+
+def test_guess_arguments_are_checked(plant):
+    df = grid(full=False).iloc[:10]
+    g = solve_many(df, plant)
+    with pytest.raises(ValueError, match="guess has 10 rows for 5 rows"):
+        solve_many(df.iloc[:5], plant, guess=g)
+    with pytest.raises(ValueError, match="guess_index must give one row of guess"):
+        solve_many(df, plant, guess=g, guess_index=np.full(10, 10))
+    with pytest.raises(ValueError, match="R_th_f must be a scalar or one value per row"):
+        solve_many(df, plant, R_th_f=np.zeros(3))
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_per_row_fouling_and_condenser_factor_equal_separate_calls(plant, ls_mode):
+    base = grid(full=False)
+    df = base[base["p_m_sp"].isin([6.0, 10.0, 14.0, 18.0, 22.0])].reset_index(drop=True)
+    n = len(df)
+    R = np.array([0.0, 3e-6, 6e-6])[np.arange(n) % 3]               # K/W
+    k = np.array([1.0, 0.95, 1.04, 1.0])[np.arange(n) % 4]
+    vr = solve_many(df, plant, ls_mode=ls_mode, R_th_f=R, cond_factor=k)
+    warm = solve_many(df, plant, ls_mode=ls_mode, R_th_f=R, cond_factor=k,
+                      guess=solve_many(df.assign(p_m_sp=df["p_m_sp"] - 0.5), plant, ls_mode=ls_mode,
+                                       R_th_f=R, cond_factor=k))
+    assert warm.warm_rows > 0.5 * n
+    got, hot = vr.frame(), warm.frame()
+    for r, f in {(a, b) for a, b in zip(R, k)}:
+        rows = np.flatnonzero((R == r) & (k == f))
+        p = plant.replace(R_th_f=r, CF_DSH=plant.CF_DSH * f, CF_con=plant.CF_con * f, CF_SC=plant.CF_SC * f)
+        ref = solve_many(df.iloc[rows], p, ls_mode=ls_mode).frame()
+        for frame in (got, hot):
+            part = frame.iloc[rows].reset_index(drop=True)
+            assert part["status"].tolist() == ref["status"].tolist()
+            both = part["Q_sink_kW"].notna().to_numpy()
+            assert (both == ref["Q_sink_kW"].notna().to_numpy()).all()
+            for c in COMPARED + ("T_source_out_C",):
+                a, b = part[c].to_numpy()[both], ref[c].to_numpy()[both]
+                tol = 1e-9 if frame is got else AGREE_REL
+                assert np.all(np.abs(a - b) <= tol * np.abs(b)), (c, r, f)

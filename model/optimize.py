@@ -275,7 +275,9 @@ class Evaluator:
         own = self._own_sp[idx] if self._own_sp is not None else np.full(n, np.nan)
         sp_all = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
         rows = self.rows.iloc[np.tile(idx, k)]
-        vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode)
+        guess, gidx = self._guesses(sps, idx)
+        vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
+                          guess_index=gidx)
         frame = vres.frame(COLUMNS)
         w = self.w[idx]
         out = []
@@ -286,6 +288,64 @@ class Evaluator:
             p.vres = _take(vres, np.arange(j * n, (j + 1) * n))
             out.append(p)
         return out
+
+
+    def _guess_for(self, sp) -> Point | None:
+        """A solved Point of the same rows to start set point ``sp`` from: this evaluator's own at
+        the nearest set point within GUESS_BAR (the rows' own set points for None), else the
+        other evaluator's (``guess_from``: other parameters) at the same or nearest one."""
+        for ev in (self, self._other):
+            if ev is None:
+                continue
+            if sp is None:
+                p = ev._cache.get(None)
+                if p is not None and p.vres is not None and ev is not self:
+                    return p
+                continue
+            near = [(abs(x - sp), x) for x in ev._cache if x is not None and abs(x - sp) <= GUESS_BAR
+                    and ev._cache[x].vres is not None]
+            if near:
+                return ev._cache[min(near)[1]]
+        return None
+
+    def _guesses(self, sps: list, idx: np.ndarray):
+        """(guess VResult, guess_index) for solve_many over ``sps`` x rows ``idx``, or (None,
+        None) when no set point has a solved neighbour. Only whole-row evaluations serve."""
+        if len(idx) != len(self.rows):
+            return None, None
+        n = len(idx)
+        parts, index, base = [], [], 0
+        for sp in sps:
+            p = self._guess_for(sp)
+            if p is None:
+                index.append(np.full(n, -1))
+            else:
+                parts.append(p.vres)
+                index.append(np.arange(base, base + n))
+                base += n
+        if not parts:
+            return None, None
+        return _concat(parts), np.concatenate(index)
+
+
+def _concat(vs: list):
+    """VResults of the same fields stacked row-wise."""
+    if len(vs) == 1:
+        return vs[0]
+    n = [len(v) for v in vs]
+    kw = {}
+    for f in dataclasses.fields(vs[0]):
+        vals = [getattr(v, f.name) for v in vs]
+        a = vals[0]
+        if isinstance(a, np.ndarray) and a.shape[:1] == (n[0],):
+            kw[f.name] = np.concatenate(vals)
+        elif isinstance(a, dict):
+            kw[f.name] = {k: (np.concatenate([d[k] for d in vals])
+                              if isinstance(b, np.ndarray) and b.shape[:1] == (n[0],) else b)
+                          for k, b in a.items()}
+        else:
+            kw[f.name] = a
+    return type(vs[0])(**kw)
 
 
 def _take(v, idx: np.ndarray):

@@ -71,6 +71,52 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
     return frame_of(rows, params, columns, df.index)
 
 
+def simulate_many(df: pd.DataFrame, params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
+                  ls_mode: str = "flag", R_th_f=None, cond_factor=None, seed=None,
+                  seed_rows: pd.DataFrame | None = None, with_result: bool = False):
+    """``simulate_batch`` with per-row evaporator fouling ``R_th_f`` [K/W] and condenser-unit
+    factors ``cond_factor`` (scalars or arrays; each row answered as with
+    ``params.replace(R_th_f=...)`` and ``model.analysis.chain.scale_condenser(params, k)``), in one
+    call of the vectorised solver. ``seed``: a ``model.vcycle.VResult`` of nearby solutions to start
+    from, of the rows ``seed_rows`` (each row starts from the nearest of them; None: the same rows
+    in the same order). ``with_result``: return (frame, VResult) (VResult None on the scalar
+    path). With VECTORISED off: the scalar rows, one ``simulate_batch`` per distinct value."""
+    n = len(df)
+    R = None if R_th_f is None else np.broadcast_to(np.asarray(R_th_f, dtype=float), (n,))
+    K = None if cond_factor is None else np.broadcast_to(np.asarray(cond_factor, dtype=float), (n,))
+    if VECTORISED:
+        from .optimize import nearest_rows
+        from .vcycle import solve_many
+        gidx = None
+        if seed is not None and seed_rows is not None:
+            gidx = nearest_rows(df, seed_rows)
+        elif seed is not None and len(seed) != n:
+            seed = None
+        vres = solve_many(df, params, ls_mode=ls_mode, R_th_f=R, cond_factor=K, guess=seed,
+                          guess_index=gidx)
+        frame = vres.frame(columns, df.index)
+        return (frame, vres) if with_result else frame
+    keys = list(zip(R if R is not None else [None] * n, K if K is not None else [None] * n))
+    parts, order = [], []
+    for key in dict.fromkeys(keys):
+        pos = np.flatnonzero([k == key for k in keys])
+        par = params
+        if key[0] is not None:
+            par = par.replace(R_th_f=float(key[0]))
+        if key[1] is not None:
+            par = par.replace(CF_DSH=par.CF_DSH * key[1], CF_con=par.CF_con * key[1],
+                              CF_SC=par.CF_SC * key[1])
+        parts.append(simulate_batch(df.iloc[pos].reset_index(drop=True), par, columns=columns,
+                                    ls_mode=ls_mode))
+        order.append(pos)
+    if not parts:
+        frame = simulate_batch(df, params, columns=columns, ls_mode=ls_mode)
+    else:
+        frame = pd.concat(parts, ignore_index=True).iloc[np.argsort(np.concatenate(order), kind="stable")]
+        frame.index = df.index
+    return (frame, None) if with_result else frame
+
+
 Row = tuple  # (status, reason, CycleResult | None) of one simulated row
 
 

@@ -190,6 +190,10 @@ class Evaluator:
         self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
         self._other = guess_from if guess_from is not None and len(guess_from.rows) == len(self.rows) \
             else None
+        # the vectorised solver starts rows from another evaluator's rows too when they are other
+        # rows (e.g. the window's samples from its representative points): each from the nearest
+        self._seed = guess_from if guess_from is not None and self._other is None else None
+        self._seed_map = nearest_rows(self.rows, guess_from.rows) if self._seed is not None else None
 
     def _nearest(self, i: int, sp: float):
         """The warm start of row i at set point sp: its own solution nearest in set point (the
@@ -290,22 +294,25 @@ class Evaluator:
         return out
 
 
-    def _guess_for(self, sp) -> Point | None:
-        """A solved Point of the same rows to start set point ``sp`` from: this evaluator's own at
-        the nearest set point within GUESS_BAR (the rows' own set points for None), else the
-        other evaluator's (``guess_from``: other parameters) at the same or nearest one."""
-        for ev in (self, self._other):
+    def _guess_for(self, sp):
+        """(VResult, row index into it) to start set point ``sp`` from: this evaluator's own at the
+        nearest set point within GUESS_BAR, else the other evaluator's (``guess_from``: other
+        parameters) at the same or nearest one, else the seed evaluator's (other rows, each row
+        from the nearest) likewise; None when there is none. For None (the rows' own set points)
+        only another evaluator's own set points serve."""
+        for ev, rmap in ((self, None), (self._other, None), (self._seed, self._seed_map)):
             if ev is None:
                 continue
             if sp is None:
                 p = ev._cache.get(None)
                 if p is not None and p.vres is not None and ev is not self:
-                    return p
+                    return p.vres, (np.arange(len(p.vres)) if rmap is None else rmap)
                 continue
             near = [(abs(x - sp), x) for x in ev._cache if x is not None and abs(x - sp) <= GUESS_BAR
                     and ev._cache[x].vres is not None]
             if near:
-                return ev._cache[min(near)[1]]
+                v = ev._cache[min(near)[1]].vres
+                return v, (np.arange(len(v)) if rmap is None else rmap)
         return None
 
     def _guesses(self, sps: list, idx: np.ndarray):
@@ -316,16 +323,27 @@ class Evaluator:
         n = len(idx)
         parts, index, base = [], [], 0
         for sp in sps:
-            p = self._guess_for(sp)
-            if p is None:
+            g = self._guess_for(sp)
+            if g is None:
                 index.append(np.full(n, -1))
             else:
-                parts.append(p.vres)
-                index.append(np.arange(base, base + n))
-                base += n
+                parts.append(g[0])
+                index.append(base + g[1])
+                base += len(g[0])
         if not parts:
             return None, None
         return _concat(parts), np.concatenate(index)
+
+
+def nearest_rows(rows: pd.DataFrame, other: pd.DataFrame) -> np.ndarray:
+    """For each row of ``rows`` the position of the nearest row of ``other`` in the standardised
+    inputs (INPUT_COLUMNS, scaled by ``other``'s spread or 1)."""
+    a = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    b = other[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    sd = np.nanstd(np.vstack([a, b]), axis=0)
+    sd = np.where(sd > 0, sd, 1.0)
+    d = (((a[:, None, :] - b[None, :, :]) / sd) ** 2).sum(axis=2)
+    return np.argmin(np.nan_to_num(d, nan=np.inf), axis=1).astype(int)
 
 
 def _concat(vs: list):

@@ -45,6 +45,9 @@ from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner
 
 
+PI_MIN = 1.25      # the search's lowest pressure ratio of either stage [-]
+
+
 class AdviceError(ValueError):
     """Settings are invalid; the message names the key."""
 
@@ -326,7 +329,12 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     data = data.iloc[keep].reset_index(drop=True)
     if measured is not None:
         measured = {k: np.asarray(v, dtype=float)[keep] for k, v in measured.items()}
-    full = Evaluator(data, np.ones(len(data)), adaptive)
+    # the representative points first: the window's samples start from them (vectorised solver)
+    parts = groups(data, s.representative_points)
+    rows, w = representative(data, s.representative_points, parts)
+    ev = Evaluator(rows, w, adaptive)
+    ev.at(None)
+    full = Evaluator(data, np.ones(len(data)), adaptive, guess_from=ev)
     ref = full.at(None)
     ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
     if not ok.any():
@@ -335,12 +343,20 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
         data = data.loc[ok].reset_index(drop=True)
         if measured is not None:
             measured = {k: np.asarray(v, dtype=float)[ok] for k, v in measured.items()}
-        full = Evaluator(data, np.ones(len(data)), adaptive)
+        parts = groups(data, s.representative_points)
+        rows, w = representative(data, s.representative_points, parts)
+        ev = Evaluator(rows, w, adaptive)
+        ev.at(None)
+        full = Evaluator(data, np.ones(len(data)), adaptive, guess_from=ev)
         ref = full.at(None)
     lo, hi = window_range(ref.frame, amb)
-    parts = groups(data, s.representative_points)
-    rows, w = representative(data, s.representative_points, parts)
-    ev = Evaluator(rows, w, adaptive)
+    # the search range: pressure ratios of both stages at least PI_MIN (below that a stage does
+    # almost nothing and the other all of the lift: never the optimum, and where the model's
+    # trial points fail slowly)
+    lo = max(lo, PI_MIN * float(ref.frame["p_e_bar"].max()) - amb)
+    hi = min(hi, float(ref.frame["p_c_bar"].min()) / PI_MIN - amb)
+    if not hi > lo:
+        raise OptimizationError(f"empty set-point range [{lo:.2f}, {hi:.2f}] bar(g)")
     # the model's offset from the measured compressor operating points at the actual set point
     offsets = {}
     if measured is not None:

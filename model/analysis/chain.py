@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import pandas as pd
 
-from ..batch import INPUT_COLUMNS, simulate_batch, solved_mask
+from ..batch import INPUT_COLUMNS, simulate_batch, simulate_many, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
@@ -248,6 +248,8 @@ class WindowPartial:
     ev_w: np.ndarray | None = None
     surrogate: dict | None = None               # the surrogate's prediction taken in place of the search
     tracker_row: dict | None = None             # the surrogate tracker's row of this window (pass 2)
+    seed: tuple | None = None                   # (VResult, rows): the advice's representative points
+                                                # at the actual set points, where pass 3 starts from
     samples: pd.DataFrame | None = None         # per-sample model series (replay's samples.csv)
 
 
@@ -309,10 +311,14 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     target = float(np.nansum([w[i] * np.nanmean(meas[g]) for i, g in enumerate(parts)]) / w.sum())
     lo, hi = math.log(0.3), math.log(3.0)
 
+    last = [None]       # the previous trial's solution: each trial starts from it
+
     def err(x: float) -> float:
-        f = simulate_batch(rows, scale_condenser(params, math.exp(x)), columns=("p_c_bar",))
+        f, v = simulate_many(rows, params, columns=("p_c_bar",), cond_factor=math.exp(x),
+                             seed=last[0], with_result=True)
         if not solved_mask(f).all():
             return math.nan
+        last[0] = v
         return float(np.sum(w * f["p_c_bar"].to_numpy(dtype=float)) / w.sum()) - target
 
     e1 = err(0.0)
@@ -588,6 +594,9 @@ class AnalysisChain:
                     R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override)
                 out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
                 d = out.draft
+                base_pt = d.ev._cache.get(None) if d.ev is not None else None
+                if base_pt is not None and base_pt.vres is not None:
+                    out.seed = (base_pt.vres, d.rows)
                 if task.tracker is not None and d.ev is not None and task.tracker.takes_next():
                     # the tracker's row of this window from the advice's own solutions
                     out.ev_rows, out.ev_w = d.rows, d.w
@@ -608,7 +617,8 @@ class AnalysisChain:
             state.cond_factor = partial.cond_factor
         # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
         if self.s.cip.enabled and partial.adaptive is not None:
-            self._forecast(res, partial.cost_in, partial.der, state.fixed, partial.adaptive, state)
+            self._forecast(res, partial.cost_in, partial.der, state.fixed, partial.adaptive, state,
+                           seed_ev=partial.seed)
         if partial.draft is not None and res.ok:
             used = partial.surrogate
             try:
@@ -639,7 +649,8 @@ class AnalysisChain:
 
     # ---- issue 10 ------------------------------------------------------------------------------
     def _forecast(self, res: WindowResult, cost_in: pd.DataFrame, der: pd.DataFrame,
-                  fixed: PlantParams, adaptive: PlantParams, state: ChainState) -> None:
+                  fixed: PlantParams, adaptive: PlantParams, state: ChainState,
+                  seed_ev=None) -> None:
         """The adaptive model at R_th,f levels (0, the window's, the level after the last reset, and
         cip.cost_levels_per_window of cip.cost_levels_K_per_kW in turn: the plan's cost curve is
         their mean over cip.cost_average_hours) on ``cip.cost_points`` representative operating
@@ -655,8 +666,13 @@ class AnalysisChain:
                          *(x for x in (R, fs.R_post) if x is not None and math.isfinite(x) and x >= 0)})
         rows, w = representative(cost_in, c.cost_points)
         cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
-        frames = [simulate_batch(rows, adaptive.replace(R_th_f=lv * 1e-3), columns=cols, ls_mode="float")
-                  for lv in levels]
+        # every level in one call, each row starting from the nearest of the advice's solutions
+        k = len(rows)
+        seed, seed_rows = seed_ev if seed_ev is not None else (None, None)
+        allf = simulate_many(pd.concat([rows] * len(levels), ignore_index=True), adaptive, columns=cols,
+                             ls_mode="float", R_th_f=np.repeat(np.asarray(levels) * 1e-3, k),
+                             seed=seed, seed_rows=seed_rows)
+        frames = [allf.iloc[i * k:(i + 1) * k].reset_index(drop=True) for i in range(len(levels))]
         keep = np.logical_and.reduce([solved_mask(f) for f in frames])
         runs, note = None, ""
         if keep.any():
@@ -706,8 +722,13 @@ class AnalysisChain:
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
         sub = der.iloc[keep]
         inputs = sub[list(INPUT_COLUMNS)]
-        sim_f = simulate_batch(inputs, fixed, columns=cols)
-        sim_a = simulate_batch(inputs, adaptive, columns=cols)
+        # the fixed model is the adaptive one without fouling (R_th,f 0; CF_dp,f does not enter the
+        # cycle): both in one call, the fixed rows per-row R_th,f 0
+        m = len(inputs)
+        both_in = pd.concat([inputs, inputs])
+        sim = simulate_many(both_in, adaptive, columns=cols,
+                            R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)])
+        sim_f, sim_a = sim.iloc[:m].copy(), sim.iloc[m:].copy()
         both = solved_mask(sim_f) & solved_mask(sim_a)
         meas_cop = sub["COP"].to_numpy(dtype=float)[both]
         meas_q = sub["Q_sink_kW"].to_numpy(dtype=float)[both]

@@ -7,11 +7,13 @@ the README's 198 s from before issue 12) replayed on one core, in this process:
 * the shipped path (surrogate on, as the gateway's ``optimizer: auto``) and the same with the surrogate
   off, wall and CPU time, seconds per window, and the error against the simulator's true R_th,f;
 * the *plain* path in the same code on the same data: the fast path's shortcuts switched off
-  (``model.proptable.use_tables(False)``: HEOS row by row on the measured side and in the compressor
-  observations; ``model.optimize.TWO_LEVEL_SCAN``, ``EDGE_SHORTCUT``, ``BRENT_FROM_BRACKET`` off: the
-  whole coarse grid and a bounded Brent search in every window; ``model.cycle.LS_FLOAT_QUICK_ITER`` 0:
-  the LS float by the full search), surrogate off in both; the largest differences in R_th,f and the
-  set points over the windows;
+  (``model.batch.VECTORISED`` False: every model row by the scalar ``model.cycle.solve``, warm-started
+  row by row, instead of ``model.vcycle.solve_many`` over all rows at once, and the scalar search's
+  scan and Brent steps instead of the batched grids; ``model.proptable.use_tables(False)``: HEOS row
+  by row on the measured side and in the compressor observations; ``model.optimize.TWO_LEVEL_SCAN``,
+  ``EDGE_SHORTCUT``, ``BRENT_FROM_BRACKET`` off: the whole coarse grid and a bounded Brent search in
+  every window; ``model.cycle.LS_FLOAT_QUICK_ITER`` 0: the LS float by the full search), surrogate
+  off in both; the largest differences in R_th,f and the set points over the windows;
 * the *full-window* reference on the first ``ref_days`` of rows: the plain path with the advice
   evaluating every sample of the window instead of ``advice.representative_points`` (8) weighted
   means (the approximation the advice had before issue 12 already), against the fast path on the
@@ -70,20 +72,24 @@ class plain_path:
     """Context: the fast path's switchable shortcuts off in this process (see the module docstring)."""
 
     def __enter__(self):
+        import model.batch as B
         import model.cycle as C
         import model.optimize as O
         from model.proptable import use_tables
         self._old = (use_tables(False), O.TWO_LEVEL_SCAN, O.EDGE_SHORTCUT, O.BRENT_FROM_BRACKET,
-                     C.LS_FLOAT_QUICK_ITER)
+                     C.LS_FLOAT_QUICK_ITER, B.VECTORISED)
         O.TWO_LEVEL_SCAN = O.EDGE_SHORTCUT = O.BRENT_FROM_BRACKET = False
         C.LS_FLOAT_QUICK_ITER = 0
+        B.VECTORISED = False
         return self
 
     def __exit__(self, *exc):
+        import model.batch as B
         import model.cycle as C
         import model.optimize as O
         from model.proptable import use_tables
-        tables, O.TWO_LEVEL_SCAN, O.EDGE_SHORTCUT, O.BRENT_FROM_BRACKET, C.LS_FLOAT_QUICK_ITER = self._old
+        (tables, O.TWO_LEVEL_SCAN, O.EDGE_SHORTCUT, O.BRENT_FROM_BRACKET, C.LS_FLOAT_QUICK_ITER,
+         B.VECTORISED) = self._old
         use_tables(tables)
 
 

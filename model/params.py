@@ -154,6 +154,10 @@ class Compressor:
                     bad |= inside & ~rising
                     inside &= rising
                 step = np.where(inside, ((a0 + n * (a1 + n * c5)) * n - target) / df, 0.0)
+                finite = np.isfinite(step)      # a NaN row (NaN inputs) must not end the others'
+                bad |= ~finite                  # iteration (NaN >= 1e-7 is False)
+                inside &= finite
+                step = np.where(finite, step, 0.0)
                 n = np.minimum(np.maximum(n - step, n_lo), n_hi)
                 if not np.abs(step).max(initial=0.0) >= 1e-7:
                     break

@@ -69,8 +69,8 @@ class MSide:
 
 def speed_v(comp, m, rho_suc, pi, n0):
     """``comp.speed_for_flow_v`` with rows whose inputs are not finite (rows failing upstream) kept
-    out of its iteration, NaN for them: ``Compressor.speed_for_flow_v`` iterates until the largest
-    step of all rows is small, and a NaN step ends it for every row after one step."""
+    out of its iteration, NaN for them. The shipped compressors now do this themselves; the guard
+    stays for a compressor class whose vectorised method does not."""
     ok = np.isfinite(m) & np.isfinite(rho_suc) & np.isfinite(pi)
     if ok.all():
         return comp.speed_for_flow_v(m, rho_suc, pi, n0)

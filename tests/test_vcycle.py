@@ -272,6 +272,18 @@ def test_vectorised_compressor_methods_equal_the_scalar_ones(plant, learned, lea
     np.testing.assert_allclose(ev_v, ref[:, 1], rtol=COMP_REL, atol=0)
 
 
+@pytest.mark.parametrize("kind", ["polynomial", "learned", "shaped"])
+def test_a_row_with_nan_inputs_leaves_the_other_rows_speeds_as_they_are(plant, learned, learned_delta, kind):
+    comp = _compressors(plant, learned, learned_delta)[kind]
+    m, rho, pi = np.array([0.8, 1.2, 1.6]), np.array([8.0, 9.0, 10.0]), np.array([2.0, 2.3, 2.6])
+    n_ref, ev_ref = comp.speed_for_flow_v(m, rho, pi)
+    assert np.isfinite(n_ref).all()
+    n, ev = comp.speed_for_flow_v(np.array([0.8, np.nan, 1.6]), rho, pi)
+    assert np.isnan(n[1]) and np.isnan(ev[1])
+    np.testing.assert_allclose(n[[0, 2]], n_ref[[0, 2]], rtol=COMP_REL, atol=0)
+    np.testing.assert_allclose(ev[[0, 2]], ev_ref[[0, 2]], rtol=COMP_REL, atol=0)
+
+
 def test_a_compressor_without_the_protocol_is_looped(plant):
     class Derated(Compressor):
         def eta_is_at(self, pi, n):

@@ -837,7 +837,7 @@ class LearnedCompressor(Compressor):
         every = np.arange(len(target))
         f_lo, d_lo = phi(every, np.full_like(target, n_lo))
         f_hi, d_hi = phi(every, np.full_like(target, n_hi))
-        bad = ~((d_lo > 0.0) & (d_hi > 0.0))
+        bad = ~((d_lo > 0.0) & (d_hi > 0.0)) | ~np.isfinite(target)   # NaN inputs: NaN out, unbisected
         above, below = target > f_hi, target < f_lo
         with np.errstate(divide="ignore", invalid="ignore"):
             n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)

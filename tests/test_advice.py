@@ -220,3 +220,33 @@ def test_the_trusted_stretch_is_where_the_plant_has_run_plus_a_share_of_it(plant
     if not both.advice_confident:
         assert "beyond the p_m the learned curves vouch for" in both.advice_note
         assert both.p_m_sp_opt_barg == both.p_m_sp_actual_barg
+
+
+def test_a_short_covered_stretch_at_the_hs_plateau_still_brackets_the_optimum():
+    """The min_covered_bar rule (model.analysis.advice.too_short): a covered stretch shorter than
+    min_covered_bar is not enough to place the optimum, unless it starts at the HS plateau (several
+    set points give the same lowest p_m: nothing lower can be held) and the optimum lies at least
+    BRACKET_BAR below its top (the plant has run on both sides of it)."""
+    from model.analysis.advice import BRACKET_BAR, AdviceSettings, stretch_from_path, too_short
+    s = AdviceSettings()
+    # on the plateau: set points 8 ... 12.5 all give p_m 12.58; covered from there to 14.5
+    plateau = [(12.58, 0.05, sp) for sp in (8.0, 9.0, 10.0, 11.0, 12.0, 12.5)]
+    above = [(13.0, 0.3, 13.0), (14.0, 0.8, 14.0), (14.5, 0.9, 14.5), (15.0, 1.4, 15.0), (16.0, 2.5, 16.0)]
+    t = stretch_from_path(plateau + [(12.58, 0.05, math.nan)] + above, s)
+    assert t.closed_below
+    assert (t.covered_lo, t.covered_hi) == (12.58, 14.5)
+    assert t.covered_hi - t.covered_lo < s.min_covered_bar
+    assert not too_short(t, 12.58, s)                    # the plateau itself
+    assert not too_short(t, 14.5 - BRACKET_BAR, s)       # inside, with data BRACKET_BAR above it
+    assert too_short(t, 14.5 - BRACKET_BAR + 0.05, s)    # near the top: the data end just above it
+    assert too_short(t, 14.5 + t.extension / 2, s)       # in the extension: no data above it
+    # the same covered lengths without a plateau: one row per set point
+    t2 = stretch_from_path([(12.58, 0.05, 12.5)] + above, s)
+    assert not t2.closed_below
+    assert too_short(t2, 12.58, s) and too_short(t2, 13.0, s)
+    # a plateau the plant has not run at does not close the stretch
+    t3 = stretch_from_path([(x, 1.5, sp) for x, _, sp in plateau] + above, s)
+    assert not t3.closed_below and t3.covered_lo == 13.0
+    # a long enough stretch is never too short
+    t4 = stretch_from_path([(10.0, 0.2, 10.0), (11.5, 0.5, 11.5), (13.5, 0.4, 13.5)], s)
+    assert not too_short(t4, 16.0, s)

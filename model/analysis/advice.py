@@ -25,7 +25,8 @@ For one window of usable samples and the adaptive model with the learned compres
    curve misses this window's measured eta_is by more than ``max_curve_residual`` on average, when
    the plant has run over less than ``min_covered_bar`` of p_m in conditions like the window's (at
    one set point the data show no slope along p_m: where the optimum lies would come from the data
-   sheet), when the optimum lies beyond the trusted stretch (the COP still rises at its end), or when
+   sheet; not when the stretch starts at the HS plateau, the lowest p_m the plant can hold, and the
+   optimum lies at least ``BRACKET_BAR`` below its top: the data then bracket it), when the optimum lies beyond the trusted stretch (the COP still rises at its end), or when
    the expected gain is not larger than ``confidence_k`` standard deviations — unless both the gain
    and its uncertainty are below the dead band ("keep the set point" is then a confident answer: the
    model is sure that moving is not worth it).
@@ -46,6 +47,8 @@ from .compressors import STAGES, CompressorLearner
 
 
 PI_MIN = 1.25      # the search's lowest pressure ratio of either stage [-]
+PLATEAU_TOL_BAR = 0.02   # set points whose p_m lies this close to the path's lowest are on the HS plateau
+BRACKET_BAR = 1.0        # a covered stretch from the HS plateau brackets an optimum this far below its top
 
 
 class AdviceError(ValueError):
@@ -169,6 +172,8 @@ class Trusted:
                                      # than gap_max_bar where the plant has not run
     path: tuple = ()                 # ((p_m [bar(g)], coverage distance [margins], set point
                                      # [bar(g)], NaN: the actual ones), ...) by p_m
+    closed_below: bool = False       # the covered stretch starts at the lowest p_m the plant can
+                                     # hold (the HS plateau: lower set points give the same p_m)
 
     def gap_near(self, pm: float, reach: float) -> tuple | None:
         """The first wide gap within ``reach`` bar of ``pm``, or None."""
@@ -201,7 +206,13 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
         if p.ok:
             path.append((_pm_barg(p, ev.w, amb), _distance(learner, params, offsets, p),
                          math.nan if x is None else float(x)))
-    path.sort()
+    return stretch_from_path(path, s)
+
+
+def stretch_from_path(path: list, s: AdviceSettings) -> Trusted | None:
+    """The ``Trusted`` stretch from the path ((p_m [bar(g)], coverage distance [margins], set point
+    [bar(g)]), ...) in any order; None when no point of it is covered."""
+    path = sorted(path)
     pm = np.array([x for x, _, _ in path])
     d = np.array([y for _, y, _ in path])
     cov = np.flatnonzero(d <= 1.0)
@@ -211,8 +222,22 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
     # wide stretches between covered points where the path leaves the covered region
     gaps = tuple((float(pm[i]), float(pm[j])) for i, j in zip(cov[:-1], cov[1:])
                  if j > i + 1 and pm[j] - pm[i] > s.gap_max_bar)
+    # the HS plateau: several set points give the lowest p_m of the path, and the plant has run there
+    sp = np.array([z for _, _, z in path])
+    floor = (pm <= pm[0] + PLATEAU_TOL_BAR) & np.isfinite(sp)
+    closed_below = bool(cov[0] == 0 and len(np.unique(sp[floor])) >= 2)
     return Trusted(a, b, min(s.extrapolation_max_bar, s.extrapolation_share * (b - a)), gaps,
-                   tuple((round(x, 4), round(y, 3), round(z, 4)) for x, y, z in path))
+                   tuple((round(x, 4), round(y, 3), round(z, 4)) for x, y, z in path), closed_below)
+
+
+def too_short(trusted: Trusted, pm_opt: float, s: AdviceSettings) -> bool:
+    """True when the plant has run over too short a stretch of p_m (less than ``min_covered_bar``)
+    for the data to show where the optimum lies; not when the stretch starts at the HS plateau
+    (nothing lower can be held) and the optimum's p_m ``pm_opt`` [bar(g)] lies at least
+    ``BRACKET_BAR`` below its top: the plant has run on both sides of it."""
+    if trusted.covered_hi - trusted.covered_lo >= s.min_covered_bar:
+        return False
+    return not (trusted.closed_below and pm_opt <= trusted.covered_hi - BRACKET_BAR + 1e-9)
 
 
 def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
@@ -224,9 +249,13 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
     def ok(p: Point) -> bool:
         if not np.isin(p.frame["status"].to_numpy(), SOLVED).all():
             return False
-        if len(p.frame) != len(w):      # a subset of the rows (the search's probe): solving is all
+        if len(p.frame) == len(w):
+            pm = _pm_barg(p, w, amb)
+        elif len(p.frame) > 1:          # the scalar search's subsample: its plain mean
+            pm = float(p.frame["p_m_bar"].to_numpy(dtype=float).mean()) - amb
+        else:                           # the scalar search's one-row probe: solving is all
             return True
-        return trusted.lo - 1e-9 <= _pm_barg(p, w, amb) <= trusted.hi + 1e-9
+        return trusted.lo - 1e-9 <= pm <= trusted.hi + 1e-9
     return ok
 
 
@@ -417,14 +446,13 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     if learner is not None and trusted is None and not reasons:
         reasons.append("no set point puts this window's compressor operating points inside the "
                        "region the learned curves cover")
-    if trusted is not None and not reasons and \
-            trusted.covered_hi - trusted.covered_lo < s.min_covered_bar:
+    pm_opt = _pm_barg(ev.at(sp_opt), ev.w, amb) if trusted is not None else math.nan
+    if trusted is not None and not reasons and too_short(trusted, pm_opt, s):
         reasons.append(f"in conditions like this window's the plant has run over p_m "
                        f"{trusted.covered_lo:.2f}-{trusted.covered_hi:.2f} bar(g) only (less than "
                        f"{s.min_covered_bar:g} bar): the data do not show where the optimum lies; a "
                        f"few days at another set point will")
     if trusted is not None and not reasons:
-        pm_opt = _pm_barg(ev.at(sp_opt), ev.w, amb)
         gap = trusted.gap_near(pm_opt, 0.5 * s.gap_max_bar)
         if gap is not None:
             reasons.append(f"the plant has not run between p_m {gap[0]:.2f} and {gap[1]:.2f} bar(g) "

@@ -26,7 +26,8 @@ For one window of usable samples and the adaptive model with the learned compres
    the plant has run over less than ``min_covered_bar`` of p_m in conditions like the window's (at
    one set point the data show no slope along p_m: where the optimum lies would come from the data
    sheet; not when the stretch starts at the HS plateau, the lowest p_m the plant can hold, and the
-   optimum lies at least ``BRACKET_BAR`` below its top: the data then bracket it), when the optimum lies beyond the trusted stretch (the COP still rises at its end), or when
+   optimum lies at least ``BRACKET_BAR`` below its top: the data then bracket it), when the optimum
+   lies beyond the trusted stretch (the COP still rises at its end), or when
    the expected gain is not larger than ``confidence_k`` standard deviations — unless both the gain
    and its uncertainty are below the dead band ("keep the set point" is then a confident answer: the
    model is sure that moving is not worth it).

@@ -15,21 +15,12 @@ from __future__ import annotations
 import math
 import time
 import timeit
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 TARGETS = {"fouling_calibration_120_s": 2.0, "initial_calibration_90_s": 20.0,
            "optimization_120_s": 3.0, "surrogate_eval_us": 50.0, "replay_30_days_s": 600.0}
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _params():
-    import yaml
-    from .params import PlantParams
-    with open(ROOT / "config" / "plant.yaml", encoding="utf-8") as fh:
-        return PlantParams.from_dict(yaml.safe_load(fh))
 
 
 def _best(f, repeat: int = 3) -> float:
@@ -41,8 +32,10 @@ def _best(f, repeat: int = 3) -> float:
     return best
 
 
-def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dict:
-    """Measure the issue #4 targets; returns a JSON-able dict (figures, targets, pass flags)."""
+def bench_analysis(params, surrogate: dict, replay_days: float = 30.0, progress=None) -> dict:
+    """Measure the issue #4 targets on ``params`` (the caller's plant file: ``hp-edge bench --only
+    analysis --config FILE``) and ``surrogate`` (the shipped config/surrogate.json as a dict: model/
+    reads no files); returns a JSON-able dict (figures, targets, pass flags)."""
     from .calibration import apply_state, calibrate, calibration_frame, spec_from_config
     from .dpfit import fit_dp_clean
     from .measured import process
@@ -51,7 +44,6 @@ def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dic
     from .surrogate import Surrogate
     from simulator.synthetic import Noise, Operation, Truth, generate   # see the NOTE above
 
-    params = params or _params()
     out: dict = {"targets": TARGETS}
 
     # ---- short history: commissioning, then fouled operation 10 days later -------------------
@@ -89,7 +81,7 @@ def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dic
     }
 
     # ---- surrogate -----------------------------------------------------------------------------
-    sur = Surrogate.load(ROOT / "config" / "surrogate.json")
+    sur = Surrogate.from_dict(surrogate)
     x = tuple(0.5 * (lo + hi) for lo, hi in sur.ranges)
     n = 20000
     out["surrogate_eval_us"] = min(timeit.repeat(lambda: sur.evaluate(*x), number=n, repeat=3)) / n * 1e6
@@ -126,10 +118,3 @@ def bench_analysis(params=None, replay_days: float = 30.0, progress=None) -> dic
         }
     out["pass"] = {k: (out[k] <= v) for k, v in TARGETS.items() if k in out}
     return out
-
-
-if __name__ == "__main__":   # pragma: no cover
-    import json
-    import sys
-    days = float(sys.argv[1]) if len(sys.argv) > 1 else 30.0
-    print(json.dumps(bench_analysis(replay_days=days), indent=2, default=float))

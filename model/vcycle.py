@@ -535,7 +535,7 @@ def _scalar_row(i, cols, params, fluid, ls_mode, amb_bar, values, status, reason
 
 
 # --------------------------------------------------------------------------------------------------
-# benchmark: python -m model.vcycle [float|flag]
+# benchmark: hp-edge bench --only vcycle (bench_vcycle, with bench_warm)
 # --------------------------------------------------------------------------------------------------
 BENCH_COMPARED = ("Q_sink_kW", "W_total_kW", "COP", "p_c_bar", "p_m_bar", "N_LS_rpm", "N_HS_rpm")
 BENCH_SET_POINTS = tuple(np.linspace(6.5, 30.5, 25))    # bar(g): the bounded range p_e..p_c at nominal
@@ -565,27 +565,29 @@ def bench_sample_rows(n: int = 40) -> pd.DataFrame:
     return df.iloc[pick].reset_index(drop=True)
 
 
+def _best_cpu(f, k: int):
+    """(least CPU time [s] of ``k`` calls of ``f``, the last result)."""
+    best, res = math.inf, None
+    for _ in range(k):
+        t0 = time.process_time()
+        res = f()
+        best = min(best, time.process_time() - t0)
+    return best, res
+
+
 def bench_warm(params: PlantParams, rows: pd.DataFrame, ls_mode: str, repeat: int = 5,
                shift: float = 0.5) -> dict:
     """CPU time [ms] of ``solve_many`` on ``rows`` cold, and warm-started from the same rows solved
     ``shift`` bar lower; how many rows went warm, cold, to the scalar path, and how the warm answers
     compare with the cold ones (statuses, largest relative deviation)."""
-    def cpu(f, k):
-        best, res = math.inf, None
-        for _ in range(k):
-            t0 = time.process_time()
-            res = f()
-            best = min(best, time.process_time() - t0)
-        return best, res
-
     guess = solve_many(rows.assign(p_m_sp=rows["p_m_sp"] - shift), params, ls_mode=ls_mode)
-    t_c, cold = cpu(lambda: solve_many(rows, params, ls_mode=ls_mode), max(2, repeat // 2))
-    t_w, warm = cpu(lambda: solve_many(rows, params, ls_mode=ls_mode, guess=guess), repeat)
+    t_c, cold = _best_cpu(lambda: solve_many(rows, params, ls_mode=ls_mode), max(2, repeat // 2))
+    t_w, warm = _best_cpu(lambda: solve_many(rows, params, ls_mode=ls_mode, guess=guess), repeat)
     # the same without the rows that have no solution here or in the guess (their cold paths set
     # the time of a warm call)
     sub = rows[guess.solved() & cold.solved()].reset_index(drop=True)
     g_sub = solve_many(sub.assign(p_m_sp=sub["p_m_sp"] - shift), params, ls_mode=ls_mode)
-    t_s, w_sub = cpu(lambda: solve_many(sub, params, ls_mode=ls_mode, guess=g_sub), repeat)
+    t_s, w_sub = _best_cpu(lambda: solve_many(sub, params, ls_mode=ls_mode, guess=g_sub), repeat)
     both = cold.solved() & warm.solved()
     dev = max((float(np.max(np.abs(warm[c][both] - cold[c][both]) / np.abs(cold[c][both])))
                for c in BENCH_COMPARED), default=0.0) if both.any() else 0.0
@@ -600,34 +602,21 @@ def bench_warm(params: PlantParams, rows: pd.DataFrame, ls_mode: str, repeat: in
                                  "fallback_rows": w_sub.fallback_rows}}
 
 
-def bench_vcycle(params: PlantParams | None = None, ls_mode: str = "float", ops=(8, 40), repeat: int = 5) -> dict:
+def bench_vcycle(params: PlantParams, ls_mode: str = "float", ops=(8, 40), repeat: int = 5) -> dict:
     """CPU time [ms] of solve_many against the scalar loop (model.batch.solve_rows, warm-started as
     the optimizer calls it) and the reference (model.cycle.solve row by row without a guess), on
     ``bench_rows(k)`` for each k in ``ops`` (8 -> 200 rows, 40 -> 1000 rows); the largest deviations
     from the reference. Returns a JSON-able dict."""
     from .batch import frame_of, solve_rows
-    if params is None:
-        import yaml                                    # as model/bench_analysis.py: a script's default
-        from pathlib import Path
-        with open(Path(__file__).resolve().parent.parent / "config" / "plant.yaml", encoding="utf-8") as fh:
-            params = PlantParams.from_dict(yaml.safe_load(fh))
     t = time.process_time()
     get_cycle_tables(params.fluid)
     out = {"ls_mode": ls_mode, "tables_build_cpu_s": round(time.process_time() - t, 3), "cases": []}
 
-    def cpu(f, k):
-        best, res = math.inf, None
-        for _ in range(k):
-            t0 = time.process_time()
-            res = f()
-            best = min(best, time.process_time() - t0)
-        return best, res
-
     for k in ops:
         df = bench_rows(k)
         solve_many(df.iloc[:5], params, ls_mode=ls_mode)
-        t_v, vr = cpu(lambda: solve_many(df, params, ls_mode=ls_mode), repeat)
-        t_s, _ = cpu(lambda: solve_rows(df, params, ls_mode=ls_mode), 2 if len(df) <= 200 else 1)
+        t_v, vr = _best_cpu(lambda: solve_many(df, params, ls_mode=ls_mode), repeat)
+        t_s, _ = _best_cpu(lambda: solve_rows(df, params, ls_mode=ls_mode), 2 if len(df) <= 200 else 1)
         t0 = time.process_time()
         ref = frame_of([_reference_row(df.iloc[i], params, ls_mode) for i in range(len(df))], params)
         t_c = time.process_time() - t0
@@ -662,18 +651,3 @@ def _reference_row(row, params: PlantParams, ls_mode: str):
         return exc.reason, str(exc), exc.result
     except ModelError as exc:
         return exc.reason, str(exc), None
-
-
-if __name__ == "__main__":   # pragma: no cover
-    import json
-    import sys
-    if len(sys.argv) > 2 and sys.argv[2] == "warm":          # python -m model.vcycle float warm
-        import yaml
-        from pathlib import Path
-        with open(Path(__file__).resolve().parent.parent / "config" / "plant.yaml", encoding="utf-8") as fh:
-            plant = PlantParams.from_dict(yaml.safe_load(fh))
-        mode = sys.argv[1]
-        print(json.dumps([bench_warm(plant, bench_sample_rows(40), mode)]
-                         + [bench_warm(plant, bench_rows(k), mode) for k in (8, 40)], indent=2))
-    else:
-        print(json.dumps(bench_vcycle(ls_mode=sys.argv[1] if len(sys.argv) > 1 else "float"), indent=2))

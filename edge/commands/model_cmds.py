@@ -43,7 +43,8 @@ def register(sub) -> None:
     b.add_argument("--config", default=None, help=PLANT_HELP)
     b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
                    help="comma-separated sections (model,simulator,analysis,gateway,inputs; also "
-                        "advice, closed_loop, and cip: the CIP policies on 120 simulated days, about "
+                        "vcycle: the vectorised solver against the scalar one; advice, closed_loop, "
+                        "and cip: the CIP policies on 120 simulated days, about "
                         "15 min; replay: one 30-day replay on one core against the plain path and a "
                         "full-window reference; fleet: 8 plant-months on a LocalCluster with 1 and 2 "
                         "workers (needs the [fleet] extra); these run longer)")
@@ -143,6 +144,7 @@ def cmd_bench(args) -> int:
     sections = [s.strip() for s in args.only.split(",") if s.strip()]
     known = {"model": ("model.bench", "bench_model"), "simulator": ("simulator.bench", "bench_simulator"),
              "analysis": ("model.bench_analysis", "bench_analysis"),
+             "vcycle": ("model.vcycle", "bench_vcycle"),
              "gateway": ("edge.bench_gateway", "bench_gateway"),
              "advice": ("edge.bench_advice", "bench_advice"),
              "inputs": ("edge.bench_inputs", "bench_inputs"),
@@ -164,7 +166,10 @@ def cmd_bench(args) -> int:
             result[s] = func(params, grid_levels=args.grid_levels)
         elif s == "cip":
             result[s] = func(params, progress=_day_progress)
-        elif s in ("replay", "fleet"):
+        elif s == "analysis":
+            from edge.config import find_config
+            result[s] = func(params, json.loads(find_config("surrogate.json").read_text(encoding="utf-8")))
+        elif s in ("vcycle", "replay", "fleet"):
             result[s] = func(params)
         else:
             result[s] = func()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -250,3 +251,26 @@ def test_a_short_covered_stretch_at_the_hs_plateau_still_brackets_the_optimum():
     # a long enough stretch is never too short
     t4 = stretch_from_path([(10.0, 0.2, 10.0), (11.5, 0.5, 11.5), (13.5, 0.4, 13.5)], s)
     assert not too_short(t4, 16.0, s)
+
+
+@pytest.mark.parametrize("value, message", [
+    (0, "key 'advice.path_step_bar': must be >= 0.05, got 0"),
+    (-1, "key 'advice.path_step_bar': expected a number >= 0, got -1"),
+])
+def test_a_bad_path_step_is_refused_with_its_key(tmp_path, value, message):
+    """A zero step would make the trusted stretch's grid endless: refused when plant.yaml is read,
+    naming the file and the key (hp-edge exits 2 with this line)."""
+    import yaml
+
+    from edge.plantfile import PlantFileError, load_plant
+    from model.analysis.advice import AdviceError, AdviceSettings
+    with pytest.raises(AdviceError) as exc:
+        AdviceSettings.from_dict({"path_step_bar": value})
+    assert str(exc.value) == message
+    doc = yaml.safe_load((Path(__file__).resolve().parent.parent / "config" / "plant.yaml").read_text())
+    doc["advice"] = {"path_step_bar": value}
+    f = tmp_path / "plant.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(PlantFileError) as exc:
+        load_plant(f)
+    assert str(exc.value) == f"{f}: {message}"

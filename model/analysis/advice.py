@@ -98,6 +98,8 @@ class AdviceSettings:
         s = cls(**kw)
         if s.representative_points < 1:
             raise AdviceError("key 'advice.representative_points': must be >= 1")
+        if not s.path_step_bar >= 0.05:      # the trusted stretch's set-point grid
+            raise AdviceError(f"key 'advice.path_step_bar': must be >= 0.05, got {s.path_step_bar:g}")
         return s
 
 

@@ -69,7 +69,8 @@ SOLVED = ("ok", "negative_pinch")   # row outcomes that count as operated (ls_mo
 GUESS_BAR = 1.0           # bar: a row's own solution this close in set point is its warm start
 PLATEAU_REUSE_BAR = 0.01  # bar: below a row's floating p_m by this, its plateau solution is reused
 COLUMNS = ("Q_sink_kW", "W_total_kW", "p_e_bar", "p_c_bar", "p_m_bar", "hs_saturated", "COP",
-           "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C", "eta_is_LS", "eta_is_HS")
+           "N_LS_rpm", "N_HS_rpm", "ls_saturated", "T_source_out_C", "eta_is_LS", "eta_is_HS",
+           "W_LS_kW", "W_HS_kW")
 
 
 class OptimizationError(ValueError):
@@ -395,21 +396,23 @@ def _point(sp, frame: pd.DataFrame, w: np.ndarray) -> Point:
 def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP,
            xtol: float = XTOL, subsample: int = SUBSAMPLE,
            feasible: Callable[[Point], bool] | None = None,
-           anchor: float | None = None) -> tuple[float, Point]:
+           anchor: float | None = None,
+           score: Callable[[Point], float] | None = None) -> tuple[float, Point]:
     """The set point in [lo, hi] with the highest period COP of the evaluator's rows (see the module
     docstring); ``feasible`` rejects candidates. With ``anchor`` (a set point known to be feasible,
     e.g. the actual one) the coarse scan marches out from it in both directions and stops where the
     candidates become infeasible: the feasible set is one stretch around the operating point.
     Returns (set point, its Point) with the plateau convention applied. Raises OptimizationError when
-    no candidate solves (and is feasible)."""
+    no candidate solves (and is feasible). ``score``: what is maximised (default the COP; the
+    advice passes a COP discounted for the learned curves' shape error away from the data)."""
     if batch.VECTORISED:
-        return _search_v(ev, lo, hi, coarse_step, xtol, feasible)
+        return _search_v(ev, lo, hi, coarse_step, xtol, feasible, score)
     n = len(ev.rows)
 
     def value(p: Point) -> float:
         if not p.ok or (feasible is not None and not feasible(p)):
             return -math.inf
-        return p.COP
+        return p.COP if score is None else score(p)
 
     rows = np.unique(np.linspace(0, n - 1, min(subsample, n)).round().astype(int))
     grid = np.arange(lo, hi + 1e-9, coarse_step)
@@ -490,7 +493,8 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
         for nb in (sp_opt - 0.5 * coarse_step, sp_opt + 0.5 * coarse_step):
             if lo <= nb <= hi:
                 q = ev.at(nb)
-                if q.ok and not feasible(q) and q.COP > p.COP * (1.0 + PLATEAU_RTOL):
+                sq, sp_ = (q.COP, p.COP) if score is None else (score(q), score(p))
+                if q.ok and not feasible(q) and sq > sp_ * (1.0 + PLATEAU_RTOL):
                     p.beyond = float(nb)
     if p.hs_saturated:   # plateau: the set point that just reaches the floating p_m
         amb = ev.params.ambient_pressure
@@ -500,7 +504,8 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
 
 
 def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: float,
-              feasible: Callable[[Point], bool] | None) -> tuple[float, Point]:
+              feasible: Callable[[Point], bool] | None,
+              score: Callable[[Point], float] | None = None) -> tuple[float, Point]:
     """``search`` in three batched calls of the vectorised solver: the whole coarse grid; a fine grid
     (FINE_STEP) over the best coarse point's feasible neighbours; the vertex of the parabola through
     the best fine point and its neighbours (to ``xtol``, as Brent's method would), kept when it is
@@ -508,7 +513,7 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     def value(p: Point) -> float:
         if not p.ok or (feasible is not None and not feasible(p)):
             return -math.inf
-        return p.COP
+        return p.COP if score is None else score(p)
 
     grid = np.arange(lo, hi + 1e-9, coarse_step)
     if grid[-1] < hi - 1e-9:
@@ -550,7 +555,8 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     if feasible is not None:
         nbs = [x for x in (sp_opt - 0.5 * coarse_step, sp_opt + 0.5 * coarse_step) if lo <= x <= hi]
         for nb, q in zip(nbs, ev.at_many(nbs)):
-            if q.ok and not feasible(q) and q.COP > p.COP * (1.0 + PLATEAU_RTOL):
+            sq, sp_ = (q.COP, p.COP) if score is None else (score(q), score(p))
+            if q.ok and not feasible(q) and sq > sp_ * (1.0 + PLATEAU_RTOL):
                 p.beyond = float(nb)
     if p.hs_saturated:
         amb = ev.params.ambient_pressure

@@ -56,6 +56,16 @@ def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
     late = w[pd.to_datetime(w["window_start"]) >= pd.to_datetime(w["window_start"].iloc[0]) + pd.Timedelta(days=3)]
     assert late["advice_confident"].astype(bool).mean() >= 0.6, m
     assert m["R_th_f_abs_error_max_K_per_kW"] <= 0.2e-3          # fouling accuracy holds
+    # a held recommendation stays put: a confident window that kept the previous recommendation
+    # carries exactly the last confident window's value (not the window's mean set point)
+    last, held = None, 0
+    for _, r in w[w["status"] == "ok"].iterrows():
+        if r["advice_confident"]:
+            if str(r["advice_note"]).startswith("kept the previous recommendation"):
+                assert r["p_m_sp_opt_barg"] == last, (r["window_start"], r["p_m_sp_opt_barg"], last)
+                held += 1
+            last = r["p_m_sp_opt_barg"]
+    assert held >= 1
 
 
 def _commissioned(plant, hist):
@@ -274,3 +284,38 @@ def test_a_bad_path_step_is_refused_with_its_key(tmp_path, value, message):
     with pytest.raises(PlantFileError) as exc:
         load_plant(f)
     assert str(exc.value) == f"{f}: {message}"
+
+
+def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
+    """advice._shape_at: per row and stage an eta_is error of shape_k x prior_sd x prior_share, as a
+    relative error of the stage's work weighted by the stage's share of the work; the stages in
+    quadrature, the rows averaged; the search maximises COP x (1 - confidence_k x that / 100)."""
+    from model.analysis.advice import AdviceSettings, _scorer, _shape_at
+    from model.optimize import Point
+
+    class Learner:                       # the parts of CompressorLearner the shape error reads
+        class s:
+            prior_sd = 0.03
+        share = {"LS": np.array([0.1, 0.5]), "HS": np.array([0.0, 1.0])}
+
+        def learned(self, stage, curve):
+            return True
+
+        def prior_share(self, stage, pi, n):
+            return self.share[stage]
+
+    frame = pd.DataFrame({"p_e_bar": [3.0, 3.0], "p_m_bar": [9.0, 8.0], "p_c_bar": [40.0, 40.0],
+                          "N_LS_rpm": [1000.0, 1100.0], "N_HS_rpm": [1200.0, 1500.0],
+                          "W_LS_kW": [300.0, 320.0], "W_HS_kW": [500.0, 560.0],
+                          "eta_is_LS": [0.75, 0.74], "eta_is_HS": [0.72, 0.70]})
+    p = Point(9.0, 5.0, 4000.0, 800.0, False, frame)
+    s = AdviceSettings(shape_k=2.0, confidence_k=1.5)
+    u = {st: 2.0 * 0.03 * Learner.share[st] for st in ("LS", "HS")}
+    per_row = [math.hypot(300 / 800 * u["LS"][0] / 0.75, 500 / 800 * u["HS"][0] / 0.72),
+               math.hypot(320 / 880 * u["LS"][1] / 0.74, 560 / 880 * u["HS"][1] / 0.70)]
+    expected = 100.0 * (per_row[0] + per_row[1]) / 2
+    assert _shape_at(Learner(), plant, {}, s, p) == pytest.approx(expected, rel=1e-12)
+    assert _scorer(Learner(), plant, {}, s)(p) == pytest.approx(5.0 * (1 - 0.015 * expected), rel=1e-12)
+    # off: the plain COP
+    assert _shape_at(Learner(), plant, {}, replace(s, shape_k=0.0), p) == 0.0
+    assert _scorer(Learner(), plant, {}, replace(s, shape_k=0.0)) is None

@@ -81,6 +81,12 @@ class AdviceSettings:
                                         # stretch of p_m in conditions like the window's [bar]: at
                                         # one set point the data show no slope along p_m, and the
                                         # optimum would be placed by the data sheet's curves
+    shape_k: float = 2.0                # the learned curves' shape error where the data are thin:
+                                        # this many times compressor_learning.prior_sd, times the
+                                        # share of the curve that is still the prior's
+                                        # (CompressorLearner.prior_share); its COP uncertainty is
+                                        # added to the draws' and discounted from the COP the
+                                        # search maximises (0: off)
     seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
 
     @classmethod
@@ -262,6 +268,41 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
     return ok
 
 
+def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p: Point) -> float:
+    """The COP uncertainty [%] of an evaluation from the learned curves' shape error where the data
+    are thin: per row and stage an eta_is error of ``shape_k`` x prior_sd x the prior's share of
+    the curve there, as a relative error of the stage's work, weighted by the stage's share of the
+    work; the stages in quadrature, the rows averaged (one curve: their errors go together). 0
+    without learned curves or with shape_k 0."""
+    if learner is None or not s.shape_k or not p.ok:
+        return 0.0
+    f = p.frame
+    pts = _operating_points(p, params)
+    W = {st: f[f"W_{st}_kW"].to_numpy(dtype=float) for st in STAGES}
+    tot = W["LS"] + W["HS"]
+    var = np.zeros(len(f))
+    for st in STAGES:
+        if not learner.learned(st, "eta_is"):
+            continue
+        pi, n = pts[st]
+        d_pi, d_n = offsets.get(st, (0.0, 0.0))
+        u = s.shape_k * learner.s.prior_sd * learner.prior_share(st, pi - d_pi, n - d_n)
+        eta = f[f"eta_is_{st}"].to_numpy(dtype=float)
+        var += (W[st] / tot * u / eta) ** 2
+    return float(100.0 * np.mean(np.sqrt(var)))
+
+
+def _scorer(learner, params: PlantParams, offsets: dict, s: AdviceSettings):
+    """What the search maximises: the COP less ``confidence_k`` shape-error standard deviations
+    (None: the COP itself)."""
+    if learner is None or not s.shape_k:
+        return None
+
+    def score(p: Point) -> float:
+        return p.COP * (1.0 - 0.01 * s.confidence_k * _shape_at(learner, params, offsets, s, p))
+    return score
+
+
 def _with_draw(params: PlantParams, learner: CompressorLearner, draw: dict) -> PlantParams:
     """``params`` with one uncertainty draw of the learned curves (their drive factors kept)."""
     kw = {}
@@ -290,7 +331,8 @@ class AdviceDraft:
     actual: float                    # the window's actual set point (mean) [bar(g)]
     sp_opt: float                    # the model optimum within the trusted region
     hs_saturated_opt: bool
-    COP_opt_rep: float               # representative points' COP at sp_opt (dead-band gain)
+    COP_opt_rep: float               # representative points' COP at sp_opt
+    score_opt_rep: float             # ... discounted for the shape error (the dead band's gain)
     ref: Point                       # check rows at the actual set points
     opt: Point                       # check rows at sp_opt
     gm_p: Point                      # check rows at the geometric mean
@@ -402,6 +444,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
     trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s)
     feasible = _feasible(trusted, ev.w, amb)
+    score = _scorer(learner, adaptive, offsets, s)
     optimizer, sp_opt, p_opt = "search", None, None
     if sp_override is not None and math.isfinite(sp_override):
         p = ev.at(min(max(float(sp_override), lo), hi))
@@ -412,7 +455,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                 p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w))
                 sp_opt = p_m - amb
     if sp_opt is None:
-        sp_opt, p_opt = search(ev, lo, hi, feasible=feasible)
+        sp_opt, p_opt = search(ev, lo, hi, feasible=feasible, score=score)
     p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
     p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
     gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
@@ -435,6 +478,8 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                 vals.append(100.0 * (a.COP / b.COP - 1.0))
         if len(vals) >= 2:
             sd_opt = float(np.std(vals, ddof=1))
+    shape_opt = _shape_at(learner, adaptive, offsets, s, ev.at(sp_opt))
+    sd_opt = math.hypot(sd_opt, shape_opt)
     # low-confidence reasons that do not depend on the recommendation
     resid = dict(curve_residual or {})
     reasons = []
@@ -471,7 +516,8 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     return AdviceDraft(
         settings=s, amb=amb, data=data, rows=rows, w=w, adaptive=adaptive, learner=learner,
         offsets=offsets, trusted=trusted, lo=lo, hi=hi, actual=actual, sp_opt=float(sp_opt),
-        hs_saturated_opt=bool(p_opt.hs_saturated), COP_opt_rep=float(p_opt.COP), ref=ref, opt=opt,
+        hs_saturated_opt=bool(p_opt.hs_saturated), COP_opt_rep=float(p_opt.COP),
+        score_opt_rep=float(score(p_opt)) if score is not None else float(p_opt.COP), ref=ref, opt=opt,
         gm_p=gm_p, gm=gm, sd_opt=sd_opt, draws_ref=draws_ref, R_th_f_se_K_per_kW=R_th_f_se_K_per_kW,
         reasons=reasons, dcop_step=dcop_step, coverage_share=float(coverage_share), curve_residual=resid,
         evaluations=ev.evals + full.evals, optimizer=optimizer, ev=ev)
@@ -484,17 +530,23 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     Model runs happen here only when the dead band keeps the previous recommendation."""
     d, s = draft, draft.settings
     sp_opt, lo, hi, amb = d.sp_opt, d.lo, d.hi, d.amb
-    sp_rec, note = sp_opt, ""
+    sp_rec, note, held = sp_opt, "", False
     evaluations = d.evaluations
     ev = None
     if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
         ev = Evaluator(d.rows, d.w, d.adaptive)
         p_prev = ev.at(previous_rec_barg)
         feasible = _feasible(d.trusted, d.w, d.amb)
-        if p_prev.ok and (feasible is None or feasible(p_prev)):
-            gain = 100.0 * (d.COP_opt_rep / p_prev.COP - 1.0)
+        # held only where the plant has run (the covered stretch): in the extension the curves
+        # are extrapolated, and a value held there on a gain below the dead band carries their
+        # shape error from window to window
+        t = d.trusted
+        held_ok = t is None or t.covered_lo - 1e-9 <= _pm_barg(p_prev, d.w, amb) <= t.covered_hi + 1e-9
+        if p_prev.ok and held_ok and (feasible is None or feasible(p_prev)):
+            score = _scorer(d.learner, d.adaptive, d.offsets, s)
+            gain = 100.0 * (d.score_opt_rep / (p_prev.COP if score is None else score(p_prev)) - 1.0)
             if gain < s.dead_band_pct:
-                sp_rec = previous_rec_barg
+                sp_rec, held = previous_rec_barg, True
                 note = f"kept the previous recommendation (the optimum gains {gain:.3f} % more)"
         evaluations += ev.evals
     ref, opt = d.ref, d.opt
@@ -517,6 +569,8 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
                     vals.append(100.0 * (a.COP / b - 1.0))
             if len(vals) >= 2:
                 sd = float(np.std(vals, ddof=1))
+        ev = ev or Evaluator(d.rows, d.w, d.adaptive)
+        sd = math.hypot(sd, _shape_at(d.learner, d.adaptive, d.offsets, s, ev.at(sp_rec)))
     dcop = 100.0 * (rec.COP / ref.COP - 1.0)
     dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)
     gm, gm_p = d.gm, d.gm_p
@@ -532,8 +586,10 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     confident = not reasons
     if not confident:
         note = "; ".join(reasons)
-    elif abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct and sp_rec != actual:
-        # a confident "keep": the recommendation is the current set point
+    elif abs(dcop) < s.dead_band_pct and sd_eff < s.dead_band_pct and sp_rec != actual and not held:
+        # a confident "keep": the recommendation is the current set point (a held previous
+        # recommendation stays as it is: the window's mean set point drifts while a closed loop
+        # steps toward it, and the recommendation would follow that drift)
         sp_rec, rec, dcop, dq = actual, ref, 0.0, 0.0
     if not confident:
         sp_rec, dcop, dq, rec = actual, 0.0, 0.0, ref

@@ -1081,6 +1081,29 @@ class CompressorLearner:
             self._local[key] = lc if lc.ok else None
         return self._local[key]
 
+    def prior_share(self, stage: str, pi, n, curve: str = "eta_is") -> np.ndarray:
+        """How much of the learned curve at (pi, n) is still the prior's shape rather than the data's:
+        mu / (mu + W), W the effective samples near (pi, n) under the local fits' kernel
+        (``local_bandwidth_bins`` bins wide) and mu ``local_prior_weight``: ~0 where the plant has
+        run a lot, 1 far from any data. A learned curve can be wrong by up to about ``prior_sd``
+        times this share (it follows the data sheet's shape where the data are thin)."""
+        pi = np.atleast_1d(np.asarray(pi, dtype=float))
+        n = np.atleast_1d(np.asarray(n, dtype=float))
+        key = ("W", stage, curve)
+        if key not in self._local:
+            c, As, _ = self.bins[(stage, curve)].arrays()
+            self._local[key] = (c, As[:, 0, 0].copy() if len(As) else np.zeros(0))
+        c, wb = self._local[key]
+        if not len(c):
+            return np.ones(len(pi))
+        h = self.s.local_bandwidth_bins * np.array([self.s.bin_pi, self.s.bin_n])
+        q = np.column_stack([pi, n])
+        z = (q[:, None, :] - c[None, :, :]) / h
+        W = np.exp(-0.5 * (z ** 2).sum(axis=2)) @ wb
+        mu = self.s.local_prior_weight
+        out = mu / (mu + W)
+        return np.where(np.isfinite(q).all(axis=1), out, 1.0)
+
     def compressor(self, stage: str, delta: dict | None = None) -> Compressor:
         """The stage's Compressor with the learned curves (the prior's where not learned yet;
         locally weighted where the data is) and drive factor. ``delta``: scaled-basis coefficient

@@ -59,7 +59,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special
 
 LAWS = ("kern_seaton", "linear")
 DEFAULT_LEVEL = 0.90
@@ -231,7 +231,7 @@ class FoulingFit:
         var = np.einsum("ij,jk,ik->i", G, self.cov, G)
         if kind == "prediction":
             var = var + self.s2 * self.se_typ ** 2
-        q = stats.t.ppf(0.5 + level / 2.0, max(self.dof, 1.0))
+        q = special.stdtrit(max(self.dof, 1.0), 0.5 + level / 2.0)     # Student's t quantile
         v = np.atleast_1d(self.value(t_days))
         half = q * np.sqrt(np.maximum(var, 0.0))
         lo, hi = np.maximum(v - half, self.floor), v + half
@@ -580,7 +580,7 @@ def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, o
         J = np.stack([sw, sw * phi(t, k_ks), sw * r_ks * dphi_dk(t, k_ks)], axis=1)
         cov_ks, s2_ks = cov_of(J, ssr_ks, 3)
         F = max(ssr_lin - ssr_ks, 0.0) / (max(ssr_ks, 1e-300) / (n - 3))
-        p_curv = float(stats.f.sf(F, 1, (n - 3) / overlap)) if F > 0 else 1.0
+        p_curv = float(special.fdtrc(1, (n - 3) / overlap, F)) if F > 0 else 1.0   # F test's p
     else:
         cov_ks, s2_ks = np.full((3, 3), np.inf), math.inf
     rel_se_k = (math.sqrt(cov_ks[2, 2]) / k_ks if k_ks > 0 and np.isfinite(cov_ks[2, 2])

@@ -54,6 +54,7 @@ from model.analysis.compressors import CompressorLearner, LearningError
 from model.analysis.cost import CostError
 from model.analysis.replay import ReplayError, ReplaySettings
 from model.analysis.surrogate_tracker import SurrogateTracker, TrackerError
+from model.heap import release_heap
 from model.batch import INPUT_COLUMNS, simulate_batch, solved_mask
 from model.calibration import CalibrationError, spec_from_config
 from model.optimize import OptimizationError
@@ -343,7 +344,13 @@ class ModelAdvisor:
 
     def advise(self, t_end: float) -> Advice:
         """One analysis window (``AnalysisChain.window``) on the usable samples ending at
-        ``t_end`` (sample clock)."""
+        ``t_end`` (sample clock); afterwards the heap the window freed is handed back to the OS."""
+        try:
+            return self._advise(t_end)
+        finally:
+            release_heap()
+
+    def _advise(self, t_end: float) -> Advice:
         t0 = time.perf_counter()
         window = self.store.window(t_end, self.window_s, usable_only=True)
         n = len(window)

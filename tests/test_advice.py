@@ -289,7 +289,7 @@ def test_a_bad_path_step_is_refused_with_its_key(tmp_path, value, message):
 def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
     """advice._shape_at: per row and stage an eta_is error of shape_k x prior_sd x prior_share, as a
     relative error of the stage's work weighted by the stage's share of the work; the stages in
-    quadrature, the rows averaged; the search maximises COP x (1 - confidence_k x that / 100)."""
+    quadrature, the rows averaged; the search maximises COP x (1 - search_k x that / 100)."""
     from model.analysis.advice import AdviceSettings, _scorer, _shape_at
     from model.optimize import Point
 
@@ -309,7 +309,7 @@ def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
                           "W_LS_kW": [300.0, 320.0], "W_HS_kW": [500.0, 560.0],
                           "eta_is_LS": [0.75, 0.74], "eta_is_HS": [0.72, 0.70]})
     p = Point(9.0, 5.0, 4000.0, 800.0, False, frame)
-    s = AdviceSettings(shape_k=2.0, confidence_k=1.5)
+    s = AdviceSettings(shape_k=2.0, search_k=1.5)
     u = {st: 2.0 * 0.03 * Learner.share[st] for st in ("LS", "HS")}
     per_row = [math.hypot(300 / 800 * u["LS"][0] / 0.75, 500 / 800 * u["HS"][0] / 0.72),
                math.hypot(320 / 880 * u["LS"][1] / 0.74, 560 / 880 * u["HS"][1] / 0.70)]
@@ -319,3 +319,4 @@ def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
     # off: the plain COP
     assert _shape_at(Learner(), plant, {}, replace(s, shape_k=0.0), p) == 0.0
     assert _scorer(Learner(), plant, {}, replace(s, shape_k=0.0)) is None
+    assert _scorer(Learner(), plant, {}, replace(s, search_k=0.0)) is None

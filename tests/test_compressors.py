@@ -140,7 +140,8 @@ def test_drift_against_commissioning_shows_wear(plant):
     assert math.isnan(learner.drift_pct("HS", pi + 1.0, n))   # commissioning had no data there
 
 
-SHAPE_K = 2.0             # advice.shape_k: the shape error is this many prior_sd times the prior's share
+SHAPE_K = 2.0             # advice.search_k x advice.shape_k: the search's lower bound on the curve, in
+                          # prior_sd times the prior's share (two standard deviations of the shape error)
 
 
 def test_the_prior_share_is_small_where_the_plant_ran_and_one_far_from_it(speed_peak):
@@ -173,7 +174,7 @@ SHAPE_COVER = 0.85        # share of the points near the data whose error the sh
 def test_the_shape_error_bound_covers_the_learned_curves_error_near_the_data(speed_peak, plant, stage):
     """Around the data (up to three margins beyond the covered bins, where the trusted stretch's
     extension takes the search) the learned eta_is differs from the truth by no more than the
-    stated shape error SHAPE_K x prior_sd x prior_share plus the inside-the-data tolerance, at
+    search's bound SHAPE_K x prior_sd x prior_share plus the inside-the-data tolerance, at
     SHAPE_COVER of the points at least (measured on 1.5 days: 98 % LS, 90 % HS); without the shape
     term about half of them lie outside: the advice's uncertainty away from the data would be
     optimistic."""

@@ -81,12 +81,16 @@ class AdviceSettings:
                                         # stretch of p_m in conditions like the window's [bar]: at
                                         # one set point the data show no slope along p_m, and the
                                         # optimum would be placed by the data sheet's curves
-    shape_k: float = 2.0                # the learned curves' shape error where the data are thin:
-                                        # this many times compressor_learning.prior_sd, times the
-                                        # share of the curve that is still the prior's
+    shape_k: float = 1.0                # the learned curves' shape error where the data are thin,
+                                        # one standard deviation: this many times
+                                        # compressor_learning.prior_sd, times the share of the
+                                        # curve that is still the prior's
                                         # (CompressorLearner.prior_share); its COP uncertainty is
-                                        # added to the draws' and discounted from the COP the
-                                        # search maximises (0: off)
+                                        # added to the draws' (0: off)
+    search_k: float = 2.0               # the search maximises the COP less this many shape-error
+                                        # standard deviations (a ~95 % lower bound: of two set
+                                        # points with nearly the same COP, the one the data vouch
+                                        # for)
     seed: int = 20240301                # uncertainty draws (fixed: the same window, the same answer)
 
     @classmethod
@@ -293,13 +297,13 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
 
 
 def _scorer(learner, params: PlantParams, offsets: dict, s: AdviceSettings):
-    """What the search maximises: the COP less ``confidence_k`` shape-error standard deviations
+    """What the search maximises: the COP less ``search_k`` shape-error standard deviations
     (None: the COP itself)."""
-    if learner is None or not s.shape_k:
+    if learner is None or not s.shape_k or not s.search_k:
         return None
 
     def score(p: Point) -> float:
-        return p.COP * (1.0 - 0.01 * s.confidence_k * _shape_at(learner, params, offsets, s, p))
+        return p.COP * (1.0 - 0.01 * s.search_k * _shape_at(learner, params, offsets, s, p))
     return score
 
 

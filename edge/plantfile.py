@@ -62,7 +62,8 @@ PLANT_SCHEMA: dict = {
     "advice": dict.fromkeys(("representative_points", "check_rows", "uncertainty_draws",
                              "confidence_k", "min_coverage_share", "max_curve_residual",
                              "dead_band_pct", "extrapolation_share", "extrapolation_max_bar",
-                             "path_step_bar", "gap_max_bar", "min_covered_bar", "seed")),
+                             "path_step_bar", "gap_max_bar", "min_covered_bar", "shape_k", "search_k",
+                             "seed")),
     "compressor_learning": dict.fromkeys((
         "enabled", "half_life_days", "prior_weight", "min_samples", "bin_pi", "bin_n",
         "min_bin_weight", "margin_pi", "margin_n", "T_c_location", "subcooling_threshold_K",

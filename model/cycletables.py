@@ -44,7 +44,7 @@ SAT_T_MIN, SAT_T_MAX, SAT_DT = 200.0, 395.0, 0.05      # K
 VAP_T_MIN, VAP_T_MAX, VAP_DT = 230.0, 385.0, 1.0       # K (valid range; nodes 4 K beyond): an
                                                         # ammonia heat pump for district heating
                                                         # evaporates far above -43 degC; colder rows
-                                                        # take the scalar HEOS path (6 MB of RSS less)
+                                                        # take the scalar HEOS path (~5 MB of RSS less)
 THETA_MAX = 4500.0                                      # K of superheat (valid range)
 THETA_GRID, VAP_NU, VAP_ALPHA = 5000.0, 300, 7.0        # theta nodes: THETA_GRID*expm1(a u)/expm1(a)
 LIQ_T_MIN, LIQ_T_MAX, LIQ_DT = 270.0, 385.0, 1.0        # K (condensing temperature)

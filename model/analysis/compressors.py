@@ -1085,8 +1085,10 @@ class CompressorLearner:
         """How much of the learned curve at (pi, n) is still the prior's shape rather than the data's:
         mu / (mu + W), W the effective samples near (pi, n) under the local fits' kernel
         (``local_bandwidth_bins`` bins wide) and mu ``local_prior_weight``: ~0 where the plant has
-        run a lot, 1 far from any data. A learned curve can be wrong by up to about ``prior_sd``
-        times this share (it follows the data sheet's shape where the data are thin)."""
+        run a lot, 1 far from any data. Where the data are thin the learned curve follows the data
+        sheet's shape, and its error is about ``prior_sd`` times this share (one standard deviation
+        plus the in-data tolerance covers 82-91 % of the true errors near the data, two 90-98 %:
+        tests/test_compressors.py)."""
         pi = np.atleast_1d(np.asarray(pi, dtype=float))
         n = np.atleast_1d(np.asarray(n, dtype=float))
         key = ("W", stage, curve)

@@ -67,7 +67,8 @@ PLANT_SCHEMA: dict = {
     "compressor_learning": dict.fromkeys((
         "enabled", "half_life_days", "prior_weight", "min_samples", "bin_pi", "bin_n",
         "min_bin_weight", "margin_pi", "margin_n", "T_c_location", "subcooling_threshold_K",
-        "eta_range", "local", "local_bandwidth_bins", "local_prior_weight", "prior_sd")),
+        "eta_range", "local", "local_bandwidth_bins", "local_prior_weight", "prior_sd",
+        "extrapolation_sd")),
     # the surrogate fitted from the analysis windows' optima (model.analysis.surrogate_tracker)
     "surrogate_tracker": dict.fromkeys(("enabled", "reference_p_m_sp_barg", "extra_fouling_K_per_kW",
                                         "refit_every", "qualified_every", "max_rows", "min_rows",

@@ -287,9 +287,10 @@ def test_a_bad_path_step_is_refused_with_its_key(tmp_path, value, message):
 
 
 def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
-    """advice._shape_at: per row and stage an eta_is error of shape_k x prior_sd x prior_share, as a
-    relative error of the stage's work weighted by the stage's share of the work; the stages in
-    quadrature, the rows averaged; the search maximises COP x (1 - search_k x that / 100)."""
+    """advice._shape_at: per row and stage an eta_is error of shape_k x the learner's shape_sd
+    (tests/test_compressors.py checks its definition), as a relative error of the stage's work
+    weighted by the stage's share of the work; the stages in quadrature, the rows averaged; the
+    search maximises COP x (1 - search_k x that / 100)."""
     from model.analysis.advice import AdviceSettings, _scorer, _shape_at
     from model.optimize import Point
 
@@ -301,8 +302,8 @@ def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
         def learned(self, stage, curve):
             return True
 
-        def prior_share(self, stage, pi, n):
-            return self.share[stage]
+        def shape_sd(self, stage, pi, n):
+            return self.s.prior_sd * self.share[stage]
 
     frame = pd.DataFrame({"p_e_bar": [3.0, 3.0], "p_m_bar": [9.0, 8.0], "p_c_bar": [40.0, 40.0],
                           "N_LS_rpm": [1000.0, 1100.0], "N_HS_rpm": [1200.0, 1500.0],

@@ -141,7 +141,7 @@ def test_drift_against_commissioning_shows_wear(plant):
 
 
 SHAPE_K = 2.0             # advice.search_k x advice.shape_k: the search's lower bound on the curve, in
-                          # prior_sd times the prior's share (two standard deviations of the shape error)
+                          # CompressorLearner.shape_sd (two standard deviations of the shape error)
 
 
 def test_the_prior_share_is_small_where_the_plant_ran_and_one_far_from_it(speed_peak):
@@ -167,6 +167,32 @@ def test_the_prior_share_is_small_where_the_plant_ran_and_one_far_from_it(speed_
     assert (np.diff(walk) >= -1e-12).all() and walk[-1] > 5 * walk[0]
 
 
+def test_the_shape_sd_is_the_prior_share_inside_the_data_and_grows_with_the_square_beyond(speed_peak):
+    """``shape_sd`` = hypot(prior_sd x prior_share, extrapolation_sd x d^2), the second at most
+    prior_sd; d the coverage distance in margins (0 inside a covered bin)."""
+    obs, learner, _ = speed_peak
+    s = learner.s
+    pi, n = obs["pi_LS"].to_numpy(), obs["n_LS"].to_numpy()
+    ok = np.isfinite(pi) & np.isfinite(n)
+    inside = learner.coverage_distance("LS", pi[ok], n[ok]) == 0.0
+    assert inside.mean() > 0.9
+    q_pi, q_n = pi[ok][inside], n[ok][inside]
+    np.testing.assert_allclose(learner.shape_sd("LS", q_pi, q_n),
+                               s.prior_sd * learner.prior_share("LS", q_pi, q_n), rtol=1e-12)
+    # walking out along pi from the lowest covered point: the extrapolation term by hand
+    k = int(np.argmin(q_pi))
+    walk_pi = q_pi[k] - s.margin_pi * np.array([0.5, 1.0, 1.5, 2.0, 3.0, 10.0])
+    walk_n = np.full(len(walk_pi), q_n[k])
+    d = learner.coverage_distance("LS", walk_pi, walk_n)
+    assert (np.diff(d) > 0).all() and d[-1] > 5
+    want = np.hypot(s.prior_sd * learner.prior_share("LS", walk_pi, walk_n),
+                    np.minimum(s.extrapolation_sd * d ** 2, s.prior_sd))
+    got = learner.shape_sd("LS", walk_pi, walk_n)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert (np.diff(got) > 0).all()
+    assert got[-1] == pytest.approx(np.sqrt(2) * s.prior_sd, rel=1e-3)   # both terms at prior_sd far out
+
+
 SHAPE_COVER = 0.85        # share of the points near the data whose error the shape-error bound covers
 
 
@@ -174,7 +200,7 @@ SHAPE_COVER = 0.85        # share of the points near the data whose error the sh
 def test_the_shape_error_bound_covers_the_learned_curves_error_near_the_data(speed_peak, plant, stage):
     """Around the data (up to three margins beyond the covered bins, where the trusted stretch's
     extension takes the search) the learned eta_is differs from the truth by no more than the
-    search's bound SHAPE_K x prior_sd x prior_share plus the inside-the-data tolerance, at
+    search's bound SHAPE_K x shape_sd plus the inside-the-data tolerance, at
     SHAPE_COVER of the points at least (measured on 1.5 days: 98 % LS, 90 % HS); without the shape
     term about half of them lie outside: the advice's uncertainty away from the data would be
     optimistic."""
@@ -190,6 +216,6 @@ def test_the_shape_error_bound_covers_the_learned_curves_error_near_the_data(spe
     learned = _at(learner.compressor(stage), P[near], N[near], "eta_is")
     true = _at(getattr(truth, f"comp_{stage}"), P[near], N[near], "eta_is")
     err = np.abs(learned - true)
-    bound = SHAPE_K * s.prior_sd * learner.prior_share(stage, P[near], N[near]) + CURVE_TOL
+    bound = SHAPE_K * learner.shape_sd(stage, P[near], N[near]) + CURVE_TOL
     assert (err <= bound).mean() >= SHAPE_COVER
     assert (err <= CURVE_TOL).mean() < 0.6

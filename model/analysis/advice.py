@@ -83,10 +83,10 @@ class AdviceSettings:
                                         # optimum would be placed by the data sheet's curves
     shape_k: float = 1.0                # the learned curves' shape error where the data are thin,
                                         # one standard deviation: this many times
-                                        # compressor_learning.prior_sd, times the share of the
-                                        # curve that is still the prior's
-                                        # (CompressorLearner.prior_share); its COP uncertainty is
-                                        # added to the draws' (0: off)
+                                        # CompressorLearner.shape_sd (prior_sd times the share
+                                        # of the curve that is still the prior's, and
+                                        # extrapolation_sd x d^2 past the covered bins); its COP
+                                        # uncertainty is added to the draws' (0: off)
     search_k: float = 2.0               # the search maximises the COP less this many shape-error
                                         # standard deviations (a ~95 % lower bound: of two set
                                         # points with nearly the same COP, the one the data vouch
@@ -274,8 +274,9 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
 
 def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p: Point) -> float:
     """The COP uncertainty [%] of an evaluation from the learned curves' shape error where the data
-    are thin: per row and stage an eta_is error of ``shape_k`` x prior_sd x the prior's share of
-    the curve there, as a relative error of the stage's work, weighted by the stage's share of the
+    are thin or left behind: per row and stage an eta_is error of ``shape_k`` x
+    ``CompressorLearner.shape_sd`` there (prior_sd x the prior's share of the curve, and the
+    extrapolation past the covered bins), as a relative error of the stage's work, weighted by the stage's share of the
     work; the stages in quadrature, the rows averaged (one curve: their errors go together). 0
     without learned curves or with shape_k 0."""
     if learner is None or not s.shape_k or not p.ok:
@@ -290,7 +291,7 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
             continue
         pi, n = pts[st]
         d_pi, d_n = offsets.get(st, (0.0, 0.0))
-        u = s.shape_k * learner.s.prior_sd * learner.prior_share(st, pi - d_pi, n - d_n)
+        u = s.shape_k * learner.shape_sd(st, pi - d_pi, n - d_n)
         eta = f[f"eta_is_{st}"].to_numpy(dtype=float)
         var += (W[st] / tot * u / eta) ** 2
     return float(100.0 * np.mean(np.sqrt(var)))

@@ -73,6 +73,9 @@ class LearningSettings:
     local_prior_weight: float = 20.0  # samples pulling a local fit toward the global one
     prior_sd: float = 0.03            # how far [-] a plant's curve may lie from the data sheet's:
                                       # the uncertainty of the learned curves away from the data
+    extrapolation_sd: float = 0.002   # the learned curve's error [-] one margin beyond the data (a
+                                      # curvature the data have not shown), growing with the square
+                                      # of the distance (see CompressorLearner.shape_sd)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "LearningSettings":
@@ -1086,9 +1089,9 @@ class CompressorLearner:
         mu / (mu + W), W the effective samples near (pi, n) under the local fits' kernel
         (``local_bandwidth_bins`` bins wide) and mu ``local_prior_weight``: ~0 where the plant has
         run a lot, 1 far from any data. Where the data are thin the learned curve follows the data
-        sheet's shape, and its error is about ``prior_sd`` times this share (one standard deviation
-        plus the in-data tolerance covers 82-91 % of the true errors near the data, two 90-98 %:
-        tests/test_compressors.py)."""
+        sheet's shape, and its error is about ``prior_sd`` times this share (``shape_sd`` adds the
+        extrapolation past the data's edge: one standard deviation plus the in-data tolerance
+        covers 84-93 % of the true errors near the data, two 92-99.6 %: tests/test_compressors.py)."""
         pi = np.atleast_1d(np.asarray(pi, dtype=float))
         n = np.atleast_1d(np.asarray(n, dtype=float))
         key = ("W", stage, curve)
@@ -1105,6 +1108,21 @@ class CompressorLearner:
         mu = self.s.local_prior_weight
         out = mu / (mu + W)
         return np.where(np.isfinite(q).all(axis=1), out, 1.0)
+
+    def shape_sd(self, stage: str, pi, n, curve: str = "eta_is") -> np.ndarray:
+        """One standard deviation [-] of the learned curve's shape error at (pi, n): the prior's
+        share there times ``prior_sd`` (where the data are thin the curve is the data sheet's shape)
+        and, in quadrature, ``extrapolation_sd`` x d^2, d the distance beyond the covered bins in
+        margins (``coverage_distance``; at most ``prior_sd``). The second term is the error of a
+        curve carried past the data's edge along the slope the data show: a curvature c the data
+        have not shown costs c/2 x distance^2 (0.002 one margin_pi of 0.10 out: c = 0.4 per unit
+        pi^2, a curve whose peak lies 0.05 above the line the data show, half a unit of pi away).
+        Inside the covered bins it is 0."""
+        u = self.s.prior_sd * self.prior_share(stage, pi, n, curve)
+        if self.s.extrapolation_sd:
+            d = self.coverage_distance(stage, pi, n)
+            u = np.hypot(u, np.minimum(self.s.extrapolation_sd * d ** 2, self.s.prior_sd))
+        return u
 
     def compressor(self, stage: str, delta: dict | None = None) -> Compressor:
         """The stage's Compressor with the learned curves (the prior's where not learned yet;

@@ -7,9 +7,11 @@ SIGKILL by its PID at the end. Before the day, the gateway's state is what a sit
 few days of advice it trusts: ``PRELEARN_DAYS`` of the same plant (compressor family
 ``FAMILY``, whose curves differ in shape from plant.yaml's) at the operators' set points
 ``PRELEARN_SCHEDULE``, exported and replayed (commissioning, learned compressor curves, the last
-fouling calibration) into the state directory. The simulated plant then goes on from the end of
-those days (the same seed, weather, fouling), served by the simulator at the operators' last set
-point. The operator sets the enable right after the gateway starts; the day starts there.
+fouling calibration) into the state directory, and their last ``HISTORY_HOURS`` stored in the
+gateway's history through its ingest path (a gateway that ran through those days has them; its
+first calibration then needs no hour of new samples). The simulated plant then goes on from the
+end of those days (the same seed, weather, fouling), served by the simulator at the operators' last
+set point. The operator sets the enable right after the gateway starts; the day starts there.
 
 Targets (issue 13), all measured on the simulator's side:
 
@@ -37,6 +39,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import pandas as pd
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -56,6 +59,8 @@ LOOP = {"enabled": True, "setpoint_tag": "p_m_sp", "enable_tag": "closed_loop_en
 PLC_BOUNDS = (8.0, 22.0)
 TOL_BAR = 1e-6                # decoded register values against bounds and step (resolution 0.01)
 TARGET_COP_GAP_PCT = 0.2
+HISTORY_HOURS = 12.0          # the last hours of the pre-learning days in the gateway's history, as
+#                               a site's gateway has them (it has run through those days)
 
 
 # ------------------------------------------------------------------------------ the pieces
@@ -216,6 +221,40 @@ def prelearn_config(family: str = FAMILY, schedule=PRELEARN_SCHEDULE):
                    fouling=replace(cfg.fouling, R_th_f_initial_K_per_kW=0.0, CF_dp_f_initial=1.0))
 
 
+TAIL_CSV = "history_tail.csv"
+
+
+def seed_history(cfg_path: Path, tail_csv: Path) -> int:
+    """Store the pre-learning days' last ``HISTORY_HOURS`` in the gateway's history through its
+    own ingest path (``ModelAdvisor.ingest``: processed, flagged, stored as the scan loop stores
+    one-minute samples), as the history of a gateway that ran through those days. Returns the
+    samples stored."""
+    from edge import statefiles
+    from edge.aggregate import Sample
+    from edge.config import load_config
+    from edge.service import ModelAdvisor, StateDir
+    from edge.store import HistoryStore
+
+    cfg = load_config(cfg_path)
+    hist = pd.read_csv(tail_csv)
+    samples = []
+    for rec in hist.to_dict("records"):
+        ts = pd.Timestamp(rec.pop("timestamp")).timestamp()
+        vals = {k: float(v) for k, v in rec.items()}
+        bad = {k: "nan" for k, v in vals.items() if not math.isfinite(v)}
+        samples.append(Sample(ts, vals, bad, 1, 1, 0, 0, ""))
+    store = HistoryStore(cfg.history_db, cfg.history_retention_days, aggregate_s=cfg.aggregate_s)
+    store.open()
+    try:
+        advisor = ModelAdvisor(cfg, store, StateDir(cfg.state_dir, cfg.path.parent / statefiles.SURROGATE))
+        n = 0
+        for k in range(0, len(samples), 60):
+            n += len(advisor.ingest(samples[k:k + 60]))
+    finally:
+        store.close()
+    return n
+
+
 def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_DAYS,
                      schedule=PRELEARN_SCHEDULE):
     """Export and replay the pre-learning days; write the state documents the gateway starts
@@ -231,9 +270,10 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
 
     t0 = time.perf_counter()
     cfg = prelearn_config(family, schedule)
-    key = {"family": family, "days": days, "schedule": [list(x) for x in schedule]}
+    key = {"family": family, "days": days, "schedule": [list(x) for x in schedule],
+           "history_hours": HISTORY_HOURS}
     done = state / "prelearn.json"
-    if done.exists():
+    if done.exists() and (state / TAIL_CSV).exists():
         doc = json.loads(done.read_text())
         if doc.get("key") == key:
             return cfg, doc["last"], time.perf_counter() - t0, {**doc["learned"], "cached": True}
@@ -241,6 +281,9 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
     hist, truth = res_export.history, res_export.truth
     res = replay(hist, load_plant())
     state.mkdir(parents=True, exist_ok=True)
+    ts = pd.to_datetime(hist["timestamp"], utc=True)
+    hist.loc[(ts > ts.iloc[-1] - pd.Timedelta(hours=HISTORY_HOURS)).to_numpy()].to_csv(
+        state / TAIL_CSV, index=False)
     statefiles.write_state(statefiles.INITIAL_CALIBRATION, res.initial.to_dict(), state)
     statefiles.write_state(statefiles.DP_CLEAN, res.dp_clean.to_dict(), state)
     if res.compressors is not None:
@@ -272,7 +315,7 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
     import shutil
 
     cfg, last, secs, learned = await asyncio.to_thread(prelearned_state, work / "prelearn", family)
-    shutil.rmtree(work / "state", ignore_errors=True)       # a fresh gateway each run
+    shutil.rmtree(work / "state", ignore_errors=True)       # the same gateway each run
     for old in work.glob("history.sqlite*"):
         old.unlink()
     (work / "state").mkdir()
@@ -303,6 +346,8 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
         cfg_path = write_gateway_yaml(work / "gateway.yaml", sim.port, work,
                                       scan_s=SCAN_PLANT_S / speed, loop=LOOP)
         _, adv = load_read_config(cfg_path)
+        out["prelearn"]["history_samples_stored"] = await asyncio.to_thread(
+            seed_history, cfg_path, work / "prelearn" / TAIL_CSV)
         proc = start_gateway(cfg_path, work / "gateway.log")
         await until(lambda: sim.program.hb_last is not None, 60)     # the gateway runs
         await sim.set_operator_enable(False)

@@ -315,7 +315,7 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
     import shutil
 
     cfg, last, secs, learned = await asyncio.to_thread(prelearned_state, work / "prelearn", family)
-    shutil.rmtree(work / "state", ignore_errors=True)       # the same gateway each run
+    shutil.rmtree(work / "state", ignore_errors=True)       # each run from the pre-learned state
     for old in work.glob("history.sqlite*"):
         old.unlink()
     (work / "state").mkdir()

@@ -276,8 +276,8 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
     """The COP uncertainty [%] of an evaluation from the learned curves' shape error where the data
     are thin or left behind: per row and stage an eta_is error of ``shape_k`` x
     ``CompressorLearner.shape_sd`` there (prior_sd x the prior's share of the curve, and the
-    extrapolation past the covered bins), as a relative error of the stage's work, weighted by the stage's share of the
-    work; the stages in quadrature, the rows averaged (one curve: their errors go together). 0
+    extrapolation past the covered bins), as a relative error of the stage's work, weighted by
+    the stage's share of the work; the stages in quadrature, the rows averaged (one curve: their errors go together). 0
     without learned curves or with shape_k 0."""
     if learner is None or not s.shape_k or not p.ok:
         return 0.0

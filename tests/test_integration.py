@@ -293,6 +293,9 @@ def test_a_stuck_sensor_is_flagged_flatline_and_sets_sensor_fault(sims, commissi
     flatline_s (here 10 plant minutes) the tag is bad with reason 'flatline', the samples are
     unusable, the HMI sees sensor_fault; when the sensor moves again all of it clears."""
     flat_s = 600.0
+    # The window is anchored on the data, not on t_on: the simulator captures the stuck value at
+    # its next register push, which on a loaded machine can be up to max_ticks (2 s of wall time,
+    # 1200 plant s here) after the fault came on.
 
     async def scenario():
         async with Rig(sims, tmp_path, commissioned, speed=600, scan=0.05, max_age=2.0,
@@ -302,6 +305,7 @@ def test_a_stuck_sensor_is_flagged_flatline_and_sets_sensor_fault(sims, commissi
             rig.sim.faults.enable("stuck", tag="T_source_out")
             t_on = rig.sim.plant_time
             await rig.until(lambda s: "sensor_fault" in s.status_bits, 20)
+            t_det = rig.sim.plant_time
             n = rig.gw.snapshot.samples
             await rig.until(lambda s: s.samples >= n + 5, 20)
             blk = await block(rig.sim)
@@ -310,11 +314,17 @@ def test_a_stuck_sensor_is_flagged_flatline_and_sets_sensor_fault(sims, commissi
             await rig.until(lambda s: "sensor_fault" not in s.status_bits, 20)
             n = rig.gw.snapshot.samples
             await rig.until(lambda s: s.samples >= n + 3, 20)
-            return rig, blk, t_on, t_off
-    rig, blk, t_on, t_off = run(scenario())
+            return rig, blk, t_on, t_det, t_off
+    rig, blk, t_on, t_det, t_off = run(scenario())
     assert "sensor_fault" in blk["status_bits"] and "data_stale" not in blk["status_bits"]
-    stuck = rig.history("SELECT T_source_out, T_source_in, usable, bad FROM samples WHERE ts >= ? "
-                        "AND ts + 60 <= ?", int(t_on + flat_s) + 60, int(t_off))
+    first = rig.history("SELECT MIN(ts) FROM samples WHERE T_source_out IS NULL AND ts >= ?",
+                        int(t_on))[0][0]
+    # never before flatline_s of stuck value (its first scan is at or after t_on; a minute may
+    # hold scans from before the flag), and no later than the minute after the gateway reported
+    # it (the minute it was flagged in may still have enough good scans for a mean)
+    assert first is not None and t_on + flat_s - 60 <= first <= t_det + 60
+    stuck = rig.history("SELECT T_source_out, T_source_in, usable, bad FROM samples WHERE ts > ? "
+                        "AND ts + 60 <= ?", first, int(t_off))
     assert len(stuck) >= 3
     for T_out, T_in, usable, bad in stuck:
         assert T_out is None and T_in is not None and usable == 0

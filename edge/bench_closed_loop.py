@@ -10,8 +10,12 @@ few days of advice it trusts: ``PRELEARN_DAYS`` of the same plant (compressor fa
 fouling calibration) into the state directory, and their last ``HISTORY_HOURS`` stored in the
 gateway's history through its ingest path (a gateway that ran through those days has them; its
 first calibration then needs no hour of new samples). The simulated plant then goes on from the
-end of those days (the same seed, weather, fouling), served by the simulator at the operators' last
-set point. The operator sets the enable right after the gateway starts; the day starts there.
+end of those days (the same seed, weather, fouling), served by the simulator at the set point the
+operators copied by hand from the last confident advice of those days (the issue's operators, who
+trust the advice and want to stop copying it; ``start_sp`` = a number starts at that set point
+instead, e.g. 16 for SPEC §2's design value). The PLC's local set point (its fallback) is the same
+value: the operators set it. The operator sets the enable right after the gateway starts; the day
+starts there.
 
 Targets (issue 13), all measured on the simulator's side:
 
@@ -24,7 +28,7 @@ Targets (issue 13), all measured on the simulator's side:
 * realized COP within 0.2 % of the truth optimum over the run: per plant hour, the simulated
   plant's true COP at the set points it really ran (``simulator.truth.TruthModel.cop_actual``)
   against its optimum (``optimum``); the day's COP is sum Q / sum W over the hours. The same at
-  the operators' 16 bar(g) shows what the loop gained.
+  SPEC §2's 16 bar(g) (``BASELINE_SP``) shows what the loop gained over the design set point.
 """
 from __future__ import annotations
 
@@ -46,8 +50,9 @@ ROOT = Path(__file__).resolve().parent.parent
 FAMILY = "speed_peak"
 PRELEARN_DAYS = 3.0
 PRELEARN_SCHEDULE = ((0.0, 13.0), (1.0, 10.0), (2.0, 16.0))
-LOCAL_SP = 16.0               # the operators' own set point (SPEC §2: p_m,sp 16 bar(g)), where the
-#                               pre-learning days end
+START_SP = "advice"           # the set point at the enable: the pre-learning days' last confident
+#                               advice (copied by hand), or a number [bar(g)]
+BASELINE_SP = 16.0            # SPEC §2's p_m,sp, held all day: what the loop gained
 HOURS = 24.0
 SPEED = 120.0                 # plant seconds per wall second
 SCAN_PLANT_S = 15.0           # the gateway's scan in plant seconds (0.125 s of wall time at 120x)
@@ -270,7 +275,7 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
 
     t0 = time.perf_counter()
     cfg = prelearn_config(family, schedule)
-    key = {"family": family, "days": days, "schedule": [list(x) for x in schedule],
+    key = {"v": 2, "family": family, "days": days, "schedule": [list(x) for x in schedule],
            "history_hours": HISTORY_HOURS}
     done = state / "prelearn.json"
     if done.exists() and (state / TAIL_CSV).exists():
@@ -294,8 +299,11 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
     ok = w[w["status"] == "ok"]
     end = truth.iloc[-1]
     last = {k: float(end[k]) for k in ("t", "R_th_f_K_per_kW", "CF_dp_f")}
+    conf = ok[ok["advice_confident"].astype(bool)]
     learned = {"windows": int(len(w)), "confident_last_12": int(ok["advice_confident"].tail(12).sum()),
-               "last_recommendations_bar_g": [round(float(x), 2) for x in ok["p_m_sp_opt_barg"].tail(6)]}
+               "last_recommendations_bar_g": [round(float(x), 2) for x in ok["p_m_sp_opt_barg"].tail(6)],
+               "last_confident_recommendation_bar_g": (round(float(conf["p_m_sp_opt_barg"].iloc[-1]), 2)
+                                                       if len(conf) else None)}
     done.write_text(json.dumps({"key": key, "last": last, "learned": learned}))
     return cfg, last, time.perf_counter() - t0, learned
 
@@ -303,7 +311,7 @@ def prelearned_state(state: Path, family: str = FAMILY, days: float = PRELEARN_D
 # ------------------------------------------------------------------------------ the run
 
 
-async def _day(work: Path, hours: float, speed: float, family: str, local_sp: float) -> dict:
+async def _day(work: Path, hours: float, speed: float, family: str, start_sp) -> dict:
     from datetime import datetime, timezone
 
     from edge.advisory import decode_advisory
@@ -311,7 +319,7 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
     from simulator.server import PlantSimulator
 
     out: dict = {"family": family, "hours": hours, "speed": speed, "loop": LOOP,
-                 "plc_bounds_bar_g": list(PLC_BOUNDS), "local_set_point_bar_g": local_sp}
+                 "plc_bounds_bar_g": list(PLC_BOUNDS)}
     import shutil
 
     cfg, last, secs, learned = await asyncio.to_thread(prelearned_state, work / "prelearn", family)
@@ -322,6 +330,15 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
     for doc in (work / "prelearn").glob("*.json"):
         if doc.name != "prelearn.json":
             shutil.copy(doc, work / "state" / doc.name)
+    if start_sp == "advice":
+        local_sp = learned["last_confident_recommendation_bar_g"]
+        if local_sp is None:
+            raise RuntimeError("the pre-learning days gave no confident advice to start from")
+    else:
+        local_sp = float(start_sp)
+    out["start_set_point"] = {"rule": start_sp if start_sp == "advice" else "given",
+                              "bar_g": local_sp}
+    out["local_set_point_bar_g"] = local_sp
     out["prelearn"] = {"days": PRELEARN_DAYS, "schedule_days_barg": [list(x) for x in PRELEARN_SCHEDULE],
                        "seconds": round(secs, 1), **learned}
     # the plant of the pre-learning days goes on where they end (same seed: the same plant)
@@ -398,7 +415,7 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
             proc.kill()
             proc.wait(10)
         await sim.stop()
-    out["cop"] = await asyncio.to_thread(judge_cop, truth, sim_cfg, t_start, t_end, local_sp)
+    out["cop"] = await asyncio.to_thread(judge_cop, truth, sim_cfg, t_start, t_end, BASELINE_SP)
     from edge.store import HistoryStore
     with HistoryStore(work / "history.sqlite", 400) as store:
         events = store.closed_loop_events()
@@ -421,23 +438,24 @@ async def _day(work: Path, hours: float, speed: float, family: str, local_sp: fl
 
 
 def bench_closed_loop(hours: float = HOURS, speed: float = SPEED, family: str = FAMILY,
-                      work: Path | None = None, local_sp: float = LOCAL_SP) -> dict:
+                      work: Path | None = None, start_sp: float | str = START_SP) -> dict:
     """``hp-edge bench --only closed_loop``: the figures as a dict (JSON-ready). ``work``: keep
     the run's files there (gateway.yaml, its log, history, state; the pre-learned state is
     reused by the next run in the same directory)."""
     if work is not None:
         work.mkdir(parents=True, exist_ok=True)
-        return asyncio.run(_day(work, hours, speed, family, local_sp))
+        return asyncio.run(_day(work, hours, speed, family, start_sp))
     with tempfile.TemporaryDirectory(prefix="hp-edge-bench-closed-loop-") as tmp:
-        return asyncio.run(_day(Path(tmp), hours, speed, family, local_sp))
+        return asyncio.run(_day(Path(tmp), hours, speed, family, start_sp))
 
 
 if __name__ == "__main__":
-    # python -m edge.bench_closed_loop [HOURS [SPEED [WORKDIR [LOCAL_SP [FAMILY]]]]]
+    # python -m edge.bench_closed_loop [HOURS [SPEED [WORKDIR [START_SP [FAMILY]]]]]
+    # (START_SP: "advice" or a set point in bar(g), e.g. 16)
     import json
     a = sys.argv[1:]
     res = bench_closed_loop(float(a[0]) if a else HOURS, float(a[1]) if len(a) > 1 else SPEED,
                             work=Path(a[2]) if len(a) > 2 and a[2] != "-" else None,
-                            local_sp=float(a[3]) if len(a) > 3 else LOCAL_SP,
+                            start_sp=(a[3] if a[3] == "advice" else float(a[3])) if len(a) > 3 else START_SP,
                             family=a[4] if len(a) > 4 else FAMILY)
     print(json.dumps(res, indent=2, default=float))

@@ -118,21 +118,39 @@ class SetpointResult:
                 f"evaluations of {self.n_eval_rows} rows, {self.run_time_s:.2f} s")
 
 
-@dataclass
+@dataclass(eq=False)
 class Point:
-    """The period figures of the evaluation rows at one set point."""
+    """The period figures of the evaluation rows at one set point. The per-row model outputs are
+    ``frame`` (a DataFrame, built on first use when the point came from the vectorised solver) and
+    ``col(name)`` (one of its columns as an array, without building it)."""
     sp: float                       # set point [bar(g)]
     COP: float                      # sum(w Q) / sum(w W); NaN when a row is not solved
     Q_sink_kW: float                # weighted mean
     W_kW: float
     hs_saturated: bool              # every row HS-saturated
-    frame: pd.DataFrame             # per-row model outputs
+    _frame: pd.DataFrame | None     # per-row model outputs (None: built from ``cols``)
     beyond: float | None = None     # search: a better set point just outside the feasible set
     vres: object = None             # the vectorised solver's result (model.vcycle.VResult), if any
+    cols: dict | None = None        # the frame's columns as arrays (model.vcycle.VResult.columns)
+    index: object = None            # the frame's index, with ``cols``
 
     @property
     def ok(self) -> bool:
         return math.isfinite(self.COP)
+
+    @property
+    def frame(self) -> pd.DataFrame:
+        if self._frame is None:
+            from .vcycle import columns_frame
+            self._frame = columns_frame(self.cols, self.index)
+        return self._frame
+
+    def col(self, name: str) -> np.ndarray:
+        """The column ``name`` of ``frame`` as an array (floats; objects for status and reason)."""
+        if self.cols is not None:
+            return self.cols[name]
+        v = self._frame[name]
+        return v.to_numpy() if v.dtype == object else v.to_numpy(dtype=float)
 
 
 def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:
@@ -283,13 +301,13 @@ class Evaluator:
         guess, gidx = self._guesses(sps, idx)
         vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
                           guess_index=gidx)
-        frame = vres.frame(COLUMNS)
+        cols = vres.columns(COLUMNS)
         w = self.w[idx]
+        index = self.rows.index[idx]
         out = []
         for j, sp in enumerate(sps):
             part = slice(j * n, (j + 1) * n)
-            f = frame.iloc[part].set_axis(self.rows.index[idx])
-            p = _point(sp, f, w)
+            p = _point(sp, None, w, cols={c: v[part] for c, v in cols.items()}, index=index)
             p.vres = _take(vres, np.arange(j * n, (j + 1) * n))
             out.append(p)
         return out
@@ -382,15 +400,19 @@ def _take(v, idx: np.ndarray):
     return type(v)(**kw)
 
 
-def _point(sp, frame: pd.DataFrame, w: np.ndarray) -> Point:
-    ok = np.isin(frame["status"].to_numpy(), SOLVED)
-    Q = frame["Q_sink_kW"].to_numpy(dtype=float)
-    W = frame["W_total_kW"].to_numpy(dtype=float)
+def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: dict | None = None,
+           index=None) -> Point:
+    """The Point of a frame of per-row outputs, or of its columns ``cols`` with ``index``."""
+    get = (lambda k: cols[k]) if cols is not None else (lambda k: frame[k].to_numpy(dtype=float))  # noqa: E731
+    ok = np.isin(cols["status"] if cols is not None else frame["status"].to_numpy(), SOLVED)
+    Q = get("Q_sink_kW")
+    W = get("W_total_kW")
+    x = math.nan if sp is None else sp
     if not ok.all():
-        return Point(math.nan if sp is None else sp, math.nan, math.nan, math.nan, False, frame)
-    sat = bool(frame["hs_saturated"].to_numpy(dtype=float).min() > 0.5)
-    return Point(math.nan if sp is None else sp, float((w * Q).sum() / (w * W).sum()),
-                 float((w * Q).sum() / w.sum()), float((w * W).sum() / w.sum()), sat, frame)
+        return Point(x, math.nan, math.nan, math.nan, False, frame, cols=cols, index=index)
+    sat = bool(get("hs_saturated").min() > 0.5)
+    return Point(x, float((w * Q).sum() / (w * W).sum()), float((w * Q).sum() / w.sum()),
+                 float((w * W).sum() / w.sum()), sat, frame, cols=cols, index=index)
 
 
 def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP,
@@ -498,7 +520,7 @@ def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP
                     p.beyond = float(nb)
     if p.hs_saturated:   # plateau: the set point that just reaches the floating p_m
         amb = ev.params.ambient_pressure
-        p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5
+        p_m = float(np.average(p.col("p_m_bar"), weights=ev.w)) * 1e5
         sp_opt = float(Pa_to_barg(p_m, amb / 1e5))
     return sp_opt, p
 
@@ -560,7 +582,7 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
                 p.beyond = float(nb)
     if p.hs_saturated:
         amb = ev.params.ambient_pressure
-        p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w)) * 1e5
+        p_m = float(np.average(p.col("p_m_bar"), weights=ev.w)) * 1e5
         sp_opt = float(Pa_to_barg(p_m, amb / 1e5))
     return sp_opt, p
 

@@ -166,16 +166,24 @@ class VResult:
     def frame(self, columns: tuple[str, ...] = OUTPUT_KEYS, index=None) -> pd.DataFrame:
         """The frame of ``model.batch.frame_of``: ``columns`` (floats, NaN where unsolved; the
         booleans as 1.0/0.0) plus status and reason."""
-        n = len(self.status)
+        return columns_frame(self.columns(columns),
+                             index if index is not None else pd.RangeIndex(len(self.status)))
+
+    def columns(self, columns: tuple[str, ...] = OUTPUT_KEYS) -> dict[str, np.ndarray]:
+        """``frame``'s columns as arrays (no DataFrame: the optimizer's hot path)."""
         solved = self.solved()
-        out = {}
-        for k in columns:
-            v = np.asarray(self.values[k], dtype=float)
-            out[k] = np.where(solved, v, np.nan)
-        frame = pd.DataFrame(out, index=index if index is not None else pd.RangeIndex(n))
-        frame["status"] = np.asarray(self.status, dtype=object)
-        frame["reason"] = np.asarray(self.reason, dtype=object)
-        return frame
+        out = {k: np.where(solved, np.asarray(self.values[k], dtype=float), np.nan) for k in columns}
+        out["status"] = np.asarray(self.status, dtype=object)
+        out["reason"] = np.asarray(self.reason, dtype=object)
+        return out
+
+
+def columns_frame(cols: dict[str, np.ndarray], index) -> pd.DataFrame:
+    """The DataFrame of ``VResult.columns``' arrays (status and reason last)."""
+    frame = pd.DataFrame({k: v for k, v in cols.items() if k not in ("status", "reason")}, index=index)
+    frame["status"] = cols["status"]
+    frame["reason"] = cols["reason"]
+    return frame
 
 
 # --------------------------------------------------------------------------------------------------

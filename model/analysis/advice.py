@@ -145,10 +145,9 @@ class AdviceResult:
 
 def _operating_points(p: Point, params: PlantParams) -> dict:
     """Per stage the (pi, n) arrays of an evaluation's rows."""
-    f = p.frame
-    p_e, p_m, p_c = (f[c].to_numpy(dtype=float) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
-    return {"LS": (p_m / p_e, f["N_LS_rpm"].to_numpy(dtype=float) / params.comp_LS.N_nom),
-            "HS": (p_c / p_m, f["N_HS_rpm"].to_numpy(dtype=float) / params.comp_HS.N_nom)}
+    p_e, p_m, p_c = (p.col(c) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
+    return {"LS": (p_m / p_e, p.col("N_LS_rpm") / params.comp_LS.N_nom),
+            "HS": (p_c / p_m, p.col("N_HS_rpm") / params.comp_HS.N_nom)}
 
 
 def _distance(learner: CompressorLearner, params: PlantParams, offsets: dict, p: Point) -> float:
@@ -166,7 +165,7 @@ def _distance(learner: CompressorLearner, params: PlantParams, offsets: dict, p:
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
     """The intermediate pressure of an evaluation (weighted mean over its rows) [bar(g)]."""
-    return float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=w)) - amb
+    return float(np.average(p.col("p_m_bar"), weights=w)) - amb
 
 
 @dataclass(frozen=True)
@@ -260,12 +259,13 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
         return None
 
     def ok(p: Point) -> bool:
-        if not np.isin(p.frame["status"].to_numpy(), SOLVED).all():
+        status = p.col("status")
+        if not np.isin(status, SOLVED).all():
             return False
-        if len(p.frame) == len(w):
+        if len(status) == len(w):
             pm = _pm_barg(p, w, amb)
-        elif len(p.frame) > 1:          # the scalar search's subsample: its plain mean
-            pm = float(p.frame["p_m_bar"].to_numpy(dtype=float).mean()) - amb
+        elif len(status) > 1:           # the scalar search's subsample: its plain mean
+            pm = float(p.col("p_m_bar").mean()) - amb
         else:                           # the scalar search's one-row probe: solving is all
             return True
         return trusted.lo - 1e-9 <= pm <= trusted.hi + 1e-9
@@ -281,18 +281,17 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
     without learned curves or with shape_k 0."""
     if learner is None or not s.shape_k or not p.ok:
         return 0.0
-    f = p.frame
     pts = _operating_points(p, params)
-    W = {st: f[f"W_{st}_kW"].to_numpy(dtype=float) for st in STAGES}
+    W = {st: p.col(f"W_{st}_kW") for st in STAGES}
     tot = W["LS"] + W["HS"]
-    var = np.zeros(len(f))
+    var = np.zeros(len(tot))
     for st in STAGES:
         if not learner.learned(st, "eta_is"):
             continue
         pi, n = pts[st]
         d_pi, d_n = offsets.get(st, (0.0, 0.0))
         u = s.shape_k * learner.shape_sd(st, pi - d_pi, n - d_n)
-        eta = f[f"eta_is_{st}"].to_numpy(dtype=float)
+        eta = p.col(f"eta_is_{st}")
         var += (W[st] / tot * u / eta) ** 2
     return float(100.0 * np.mean(np.sqrt(var)))
 
@@ -457,7 +456,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             optimizer, sp_opt, p_opt = "surrogate", p.sp, p
             p_opt.beyond = None
             if p.hs_saturated:      # the plateau convention of the search
-                p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w))
+                p_m = float(np.average(p.col("p_m_bar"), weights=ev.w))
                 sp_opt = p_m - amb
     if sp_opt is None:
         sp_opt, p_opt = search(ev, lo, hi, feasible=feasible, score=score)

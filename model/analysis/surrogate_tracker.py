@@ -137,10 +137,9 @@ def reference_inputs(rows: pd.DataFrame, w: np.ndarray, params: PlantParams,
     p = ev.at(reference_barg)
     if not p.ok:
         return None
-    f = p.frame
     avg = lambda a: float(np.average(np.asarray(a, dtype=float), weights=ev.w))  # noqa: E731
-    x = {"eta_is_product": avg(f["eta_is_LS"].to_numpy(dtype=float) * f["eta_is_HS"].to_numpy(dtype=float)),
-         "p_e_bar_a": avg(f["p_e_bar"]), "p_c_bar_a": avg(f["p_c_bar"]),
+    x = {"eta_is_product": avg(p.col("eta_is_LS") * p.col("eta_is_HS")),
+         "p_e_bar_a": avg(p.col("p_e_bar")), "p_c_bar_a": avg(p.col("p_c_bar")),
          "V_sink_m3h": avg(ev.rows["V_sink"]), "T_sink_in_C": avg(ev.rows["T_sink_in"]),
          "COP_reference": p.COP}
     return x, ev
@@ -167,7 +166,7 @@ def optimum_row(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, referenc
         _, p = search(ev, lo, hi)
     except OptimizationError:
         return None
-    p_m = float(np.average(p.frame["p_m_bar"].to_numpy(dtype=float), weights=ev.w))
+    p_m = float(np.average(p.col("p_m_bar"), weights=ev.w))
     return {**x, "p_m_opt_bar_a": p_m, "dCOP_pct": 100.0 * (p.COP / x["COP_reference"] - 1.0),
             "t": float(t), "R_th_f_K_per_kW": params.R_th_f * 1e3}
 

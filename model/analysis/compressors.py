@@ -47,6 +47,7 @@ CURVES = ("eta_is", "eta_vol")
 T_C_LOCATIONS = ("auto", "condenser_outlet", "subcooler_outlet")
 DAY_S = 86400.0
 _Z = (2.5, 1.0, 1.0, 0.3)        # internal scaling: z_pi = (pi - 2.5)/1.0, z_n = (n - 1)/0.3
+_NODE_PAIR = np.array([0, 1])    # a cell's two node columns (LocalCurves.value_dn_rows)
 
 
 class LearningError(ValueError):
@@ -708,14 +709,14 @@ class LocalCurves:
             j, fy = np.where(shift, j - 1, j), np.where(shift, 1.0, fy)
         inside = inside_pi[rows] & fin & (j >= 0) & (j < self._nj)
         jj = np.where(inside, j, 0).astype(np.intp)
-        zn = (n - _Z[2]) / _Z[3]
-        a = Q[rows, jj]
-        b = Q[rows, jj + 1]
-        va = a[:, 0] + (a[:, 1] + a[:, 2] * zn) * zn
-        vb = b[:, 0] + (b[:, 1] + b[:, 2] * zn) * zn
+        zn = ((n - _Z[2]) / _Z[3])[:, None]
+        ab = Q[rows[:, None], jj[:, None] + _NODE_PAIR]       # (rows, 2 node columns, 3)
+        c0, c1, c2 = ab[:, :, 0], ab[:, :, 1], ab[:, :, 2]
+        v = c0 + (c1 + c2 * zn) * zn
+        dv = c1 + 2.0 * c2 * zn
+        va, vb = v[:, 0], v[:, 1]
         val = (1 - fy) * va + fy * vb
-        d = (vb - va) / self.dn + ((1 - fy) * (a[:, 1] + 2.0 * a[:, 2] * zn)
-                                   + fy * (b[:, 1] + 2.0 * b[:, 2] * zn)) / _Z[3]
+        d = (vb - va) / self.dn + ((1 - fy) * dv[:, 0] + fy * dv[:, 1]) / _Z[3]
         nan = np.nan
         return np.where(inside, val, nan), np.where(inside, d, nan), inside
 
@@ -837,9 +838,12 @@ class LearnedCompressor(Compressor):
                 d = d + (dl[2] + dl[4] * zp + 2.0 * dl[5] * zn) / _Z[3]
             return v * nn, v + nn * d
 
-        every = np.arange(len(target))
-        f_lo, d_lo = phi(every, np.full_like(target, n_lo))
-        f_hi, d_hi = phi(every, np.full_like(target, n_hi))
+        m_rows = len(target)
+        every = np.arange(m_rows)
+        # both ends in one call (row by row the same numbers as two)
+        f_b, d_b = phi(np.concatenate([every, every]),
+                       np.concatenate([np.full_like(target, n_lo), np.full_like(target, n_hi)]))
+        f_lo, f_hi, d_lo, d_hi = f_b[:m_rows], f_b[m_rows:], d_b[:m_rows], d_b[m_rows:]
         bad = ~((d_lo > 0.0) & (d_hi > 0.0)) | ~np.isfinite(target)   # NaN inputs: NaN out, unbisected
         above, below = target > f_hi, target < f_lo
         with np.errstate(divide="ignore", invalid="ignore"):

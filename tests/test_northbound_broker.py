@@ -254,6 +254,35 @@ def test_birth_data_outage_rebirth_and_death_as_a_sparkplug_host_sees_them(broke
     assert pub.published == 346 + 1 and pub.historical >= 41 and pub.error is None
 
 
+def test_a_burst_larger_than_one_outbox_fetch_is_sent_without_waiting_for_the_next_row(
+        broker, tmp_path):
+    """More rows committed at once than one outbox read takes (FETCH), while the publisher is caught
+    up (e.g. the rows a locked history kept in memory, written in one go): every one is sent now,
+    not a batch per later commit. (It stalled after 256 when the whole suite loaded the machine.)"""
+    from edge.northbound.publisher import FETCH
+
+    n = FETCH + 44
+    sub = Subscriber(broker.port, "spBv1.0/plants/#")
+    store = HistoryStore(tmp_path / "h.sqlite", 400).open()
+    pub = publisher(broker.port, tmp_path / "h.sqlite")
+
+    async def scenario():
+        await pub.start(None)
+        await asyncio.to_thread(sub.wait_for, lambda ms: any(m.kind == "NBIRTH" for m in decode(ms)))
+        await until(lambda: pub.connected and pub.queue_depth == 0, what="caught up")
+        await asyncio.sleep(0.3)                       # a few empty pumps: caught up for sure
+        store.add_samples(rows(0, n))                  # one commit
+        await asyncio.to_thread(sub.wait_for, lambda ms: len(sample_ts(decode(ms))) >= n)
+        await pub.stop()
+    try:
+        run(scenario())
+    finally:
+        sub.close()
+        store.close()
+    assert [ts for ts, _ in sample_ts(decode(sub.messages))] == [T0 + 60 * i for i in range(n)]
+    assert pub.published == n and pub.error is None
+
+
 def test_rows_stored_while_the_gateway_is_down_are_sent_after_its_restart(broker, tmp_path):
     sub = Subscriber(broker.port, "spBv1.0/plants/#")
     store = HistoryStore(tmp_path / "h.sqlite", 400).open()

@@ -182,7 +182,7 @@ class MqttPublisher:
                     next_try = time.monotonic() + backoff
                     backoff = min(2 * backoff, self.cfg.reconnect_max_s)
                 continue
-            busy = bool(self._inflight or self._buffer) or not self._caught_up
+            busy = bool(self._inflight or self._buffer) or not self._caught_up or self._more
             rc = self._client.loop(timeout=BUSY_LOOP_S if busy else IDLE_LOOP_S)
             if rc != mqtt.MQTT_ERR_SUCCESS or self._lost is not None:
                 self._drop(self._lost or mqtt.error_string(rc))
@@ -242,6 +242,7 @@ class MqttPublisher:
         self._connack_by = 0.0
         self._need_birth = False
         self._caught_up = False
+        self._more = False            # the last outbox fetch was full: more may wait
         self._seq = 0
         self._inflight: dict[int, int] = {}       # mid -> outbox id
         self._order: deque[list] = deque()        # [outbox id, acked?, historical?] in send
@@ -411,10 +412,13 @@ class MqttPublisher:
         budget = WINDOW          # per call, so the network loop runs between batches (QoS 0)
         while len(self._inflight) < WINDOW and not self._need_birth and budget > 0:
             if not self._buffer:
-                if self._caught_up and not self._outbox.changed():
+                if self._caught_up and not self._more and not self._outbox.changed():
                     return                   # nothing was stored since the last empty fetch
                 after = self._order[-1][0] if self._order else self._acked_upto
                 got = self._outbox.fetch(after, FETCH)
+                # a full fetch may have left entries of the same commit behind: read on without
+                # waiting for another commit (changed() has already seen this one)
+                self._more = len(got) == FETCH
                 if not got:
                     self._caught_up = True
                     return

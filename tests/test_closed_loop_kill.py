@@ -11,6 +11,8 @@ import time
 import pytest
 
 from edge.bench_closed_loop import kill_and_fallback, start_gateway, until, write_gateway_yaml
+from edge.advisory import decode_advisory
+from edge.closed_loop import State
 from edge.config import load_read_config
 from simulator.config import load_simulator_config
 from simulator.server import PLC_SCAN_S, PlantSimulator
@@ -40,6 +42,13 @@ def test_kill_9_of_the_gateway_makes_the_plc_fall_back_to_the_local_set_point(tm
             await until(lambda: sim.program.hb_last is not None and sim.program.hb_last > 2, 60)
             await sim.set_operator_enable(True)
             await until(lambda: sim.remote_mode, 10)
+            # the gateway has seen the enable (its block says armed): it acts on the enable once its
+            # first calibration cycle has run, which may come after the PLC's remote mode
+            t_arm = time.monotonic() + 20
+            while (decode_advisory(adv, await sim.read_registers("holding", adv.start, adv.size))
+                   ["closed_loop_state"] != State.ARMED):
+                assert time.monotonic() < t_arm, "the gateway did not arm within 20 s"
+                await asyncio.sleep(SCAN_S)
             sim.set_local_setpoint(14.0)          # the operator's own value moves meanwhile
             await sim.wait_ticks(3)
             remote_sp = sim.plant.p_m_sp_bar_g    # remote mode: the plant keeps the remote one

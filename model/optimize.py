@@ -150,7 +150,7 @@ class Point:
         if self.cols is not None:
             return self.cols[name]
         v = self._frame[name]
-        return v.to_numpy() if v.dtype == object else v.to_numpy(dtype=float)
+        return v.to_numpy(dtype=float) if pd.api.types.is_numeric_dtype(v.dtype) else v.to_numpy()
 
 
 def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:

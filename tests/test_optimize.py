@@ -7,8 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from model import batch
 from model.batch import simulate_batch
-from model.optimize import OptimizationError, optimize_setpoint, sweep
+from model.optimize import COLUMNS, SOLVED, Evaluator, OptimizationError, optimize_setpoint, sweep
 from simulator.synthetic import Noise, Operation, Truth, generate
 
 SWEEP_STEP = 0.05         # bar, brute-force resolution (issue #4)
@@ -96,3 +97,25 @@ def test_unsolvable_window_is_a_clear_error(window):
         optimize_setpoint(data, par, bounds_barg=(20.0, 19.0))
     with pytest.raises(OptimizationError, match="lacks input columns"):
         optimize_setpoint(pd.DataFrame({"T_source_in": [25.0]}), par)
+
+
+COL_RTOL = 1e-7           # the scalar and the vectorised solver (tests/test_vcycle: 1e-9 on states)
+
+
+def test_a_points_columns_are_its_frames_on_the_scalar_and_the_vectorised_path(window, monkeypatch):
+    """``Point.col`` reads a column without a DataFrame on the vectorised path and from the frame
+    on the scalar one (where status is a string column): the same values either way, and the same
+    as ``frame``'s."""
+    data, par = window
+    w = np.ones(len(data))
+    got = {}
+    for vec in (True, False):
+        monkeypatch.setattr(batch, "VECTORISED", vec)
+        p = Evaluator(data, w, par).at(11.0)
+        assert p.ok
+        for c in COLUMNS:
+            assert np.array_equal(p.col(c), p.frame[c].to_numpy(dtype=float), equal_nan=True), c
+        assert list(p.col("status")) == list(p.frame["status"]) and set(p.col("status")) <= set(SOLVED)
+        got[vec] = p
+    for c in ("COP", "p_m_bar", "W_LS_kW", "eta_is_HS"):
+        np.testing.assert_allclose(got[True].col(c), got[False].col(c), rtol=COL_RTOL, err_msg=c)

@@ -354,6 +354,40 @@ class Evaluator:
         return _concat(parts), np.concatenate(index)
 
 
+def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: list, R_th_f,
+                deltas: dict, guess_from: "Evaluator | None" = None,
+                ls_mode: str = "float") -> list[list[Point]]:
+    """The rows at each set point of ``sps`` under K parameter draws in one call of the vectorised
+    solver: out[k][j] is the Point ``Evaluator(rows, w, draw k, ls_mode, guess_from).at_many(sps)[j]``
+    gives, draw k being ``params`` with R_th,f ``R_th_f[k]`` and the learned curves' differences
+    ``deltas[key][k]`` (``model.vcycle.solve_many``'s ``deltas`` keys, (K, 6) arrays). Each draw's
+    rows start from ``guess_from``'s solutions as such an Evaluator's would, so the answers are
+    those of K separate Evaluators."""
+    from .vcycle import solve_many
+    R = np.asarray(R_th_f, dtype=float)
+    k, m, n = len(R), len(sps), len(rows)
+    probe = Evaluator(rows, w, params, ls_mode=ls_mode, guess_from=guess_from)
+    idx = np.arange(n)
+    guess, gidx = probe._guesses(list(sps), idx)
+    own = probe._own_sp if probe._own_sp is not None else np.full(n, np.nan)
+    sp_one = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
+    vres = solve_many(probe.rows.iloc[np.tile(idx, m * k)], params, p_m_sp=np.tile(sp_one, k),
+                      ls_mode=ls_mode, guess=guess, guess_index=None if guess is None else np.tile(gidx, k),
+                      R_th_f=np.repeat(R, m * n),
+                      deltas={key: np.repeat(np.asarray(a, dtype=float), m * n, axis=0)
+                              for key, a in deltas.items()})
+    cols = vres.columns(COLUMNS)
+    out = []
+    for d in range(k):
+        pts = []
+        for j, sp in enumerate(sps):
+            part = slice((d * m + j) * n, (d * m + j + 1) * n)
+            pts.append(_point(sp, None, probe.w, cols={c: v[part] for c, v in cols.items()},
+                              index=probe.rows.index))
+        out.append(pts)
+    return out
+
+
 def nearest_rows(rows: pd.DataFrame, other: pd.DataFrame) -> np.ndarray:
     """For each row of ``rows`` the position of the nearest row of ``other`` in the standardised
     inputs (INPUT_COLUMNS, scaled by ``other``'s spread or 1)."""

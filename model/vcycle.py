@@ -31,6 +31,7 @@ path's. Per-row ``R_th_f`` and ``cond_factor`` batch what would be calls with ot
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -202,7 +203,7 @@ def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
 
 def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
                force_scalar=None, guess: "VResult | None" = None, guess_index=None, R_th_f=None,
-               cond_factor=None) -> VResult:
+               cond_factor=None, deltas: dict | None = None) -> VResult:
     """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
     m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
     as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
@@ -223,6 +224,12 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
         Per-row factor on the condenser unit's conductances CF_DSH, CF_con, CF_SC
         (``model.analysis.chain.scale_condenser``). With either, every row is answered as by
         ``solve_many`` with ``params.replace(...)`` of its own values.
+    deltas : dict, optional
+        Per-row differences to the learned compressor curves (uncertainty draws, ``model.analysis.
+        compressors.CompressorLearner.draws``): keys "LS_is", "LS_vol", "HS_is", "HS_vol", each an
+        (n, 6) array of scaled-basis coefficients; the stage's compressor must be a
+        ``LearnedCompressor``. Row i is answered as with that compressor's ``delta_is``/``delta_vol``
+        set to its row (the draws of a window in one call instead of one call per draw).
 
     The properties are HEOS's (``model.cycletables``) whatever ``params.backend`` says: with a
     tabular backend the scalar solver deviates from HEOS by up to ~1e-5, and so from these answers;
@@ -239,6 +246,20 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"{name} must be finite")
             per_row[name] = np.broadcast_to(a, (n,)).copy()
+    dl = {}
+    for key, v in (deltas or {}).items():
+        if key not in DELTA_KEYS:
+            raise ValueError(f"deltas: unknown key {key!r} (known: {', '.join(DELTA_KEYS)})")
+        if v is None:
+            continue
+        a = np.asarray(v, dtype=float)
+        if a.shape != (n, 6) or not np.all(np.isfinite(a)):
+            raise ValueError(f"deltas[{key!r}] must be finite, shape ({n}, 6), got shape {a.shape}")
+        comp = params.comp_LS if key.startswith("LS") else params.comp_HS
+        if not hasattr(comp, "delta_is"):
+            raise ValueError(f"deltas[{key!r}]: the {key[:2]} compressor has no learned curves "
+                             f"({type(comp).__name__})")
+        dl[key] = a
     gi = None
     if guess is not None:
         if not getattr(guess, "state", None):
@@ -255,21 +276,31 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
         raise ValueError("guess_index without guess")
     with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays
         return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi,
-                           per_row.get("R_th_f"), per_row.get("cond_factor"))
+                           per_row.get("R_th_f"), per_row.get("cond_factor"), dl)
 
 
-def _row_params(params: PlantParams, R_th_f, cond, i: int) -> PlantParams:
-    """The parameters of row i (``params`` with its own R_th_f and condenser factor)."""
+DELTA_KEYS = ("LS_is", "LS_vol", "HS_is", "HS_vol")
+
+
+def _row_params(params: PlantParams, R_th_f, cond, i: int, deltas: dict | None = None) -> PlantParams:
+    """The parameters of row i (``params`` with its own R_th_f, condenser factor and curve
+    differences)."""
     kw = {}
     if R_th_f is not None:
         kw["R_th_f"] = float(R_th_f[i])
     if cond is not None:
         k = float(cond[i])
         kw.update(CF_DSH=params.CF_DSH * k, CF_con=params.CF_con * k, CF_SC=params.CF_SC * k)
+    for st in ("LS", "HS"):
+        d = {f"delta_{c}": tuple(float(x) for x in deltas[f"{st}_{c}"][i])
+             for c in ("is", "vol") if deltas and f"{st}_{c}" in deltas}
+        if d:
+            kw[f"comp_{st}"] = dataclasses.replace(getattr(params, f"comp_{st}"), **d)
     return params.replace(**kw) if kw else params
 
 
-def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, cond) -> VResult:
+def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, cond,
+                deltas=None) -> VResult:
     t0 = time.process_time()
     amb_bar = params.ambient_pressure / BAR
     cols = _inputs(rows, p_m_sp, amb_bar)
@@ -290,7 +321,7 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
     V_s, V_k = m3h_to_m3s(z(cols["V_source"])), m3h_to_m3s(z(cols["V_sink"]))
     p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
     fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k,
-                   R_th_f, cond)
+                   R_th_f, cond, deltas)
     _precheck(fs, fluid, p_sp, status, reason, fallback)
     if force_scalar is not None:
         fallback |= (status == "") & np.asarray(force_scalar, dtype=bool)
@@ -378,7 +409,7 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
         branch[dst[named]] = np.array(["sp", "hs_max", "hs_min"], dtype=object)[br[named]]
     t3 = time.process_time()
     for i in np.flatnonzero(fallback):
-        branch[i] = _scalar_row(i, cols, _row_params(params, R_th_f, cond, i), fluid, ls_mode, amb_bar,
+        branch[i] = _scalar_row(i, cols, _row_params(params, R_th_f, cond, i, deltas), fluid, ls_mode, amb_bar,
                                 values, status, reason, state)
     status[(status == "")] = "ok"
     timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3,

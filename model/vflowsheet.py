@@ -26,6 +26,8 @@ one validity mask per evaluation, error codes only for rows that fail. SI units:
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .components import evaporator_T_e
@@ -104,12 +106,14 @@ class Flowsheet:
     """
 
     def __init__(self, params: PlantParams, tab: CycleTables, comp_LS, comp_HS,
-                 T_si, T_so, T_ki, V_s, V_k, R_th_f=None, cond=None) -> None:
+                 T_si, T_so, T_ki, V_s, V_k, R_th_f=None, cond=None, deltas=None) -> None:
         self.par, self.tab, self.ls, self.hs = params, tab, comp_LS, comp_HS
         n = len(T_si)
         self.n = n
         self.T_si, self.T_ki, self.V_s, self.V_k = T_si, T_ki, V_s, V_k
         self.R_th_f, self.cond = R_th_f, cond
+        # per-row differences to the learned curves (uncertainty draws): {DELTA_KEY: (n, 6) array}
+        self.deltas = {k: np.asarray(v, dtype=float) for k, v in (deltas or {}).items() if v is not None}
         rc = params.cp_w * params.rho_w
         self.C_s = rc * V_s
         self.C_w = rc * V_k
@@ -168,6 +172,7 @@ class Flowsheet:
             if a is not None:
                 a = np.asarray(a, dtype=float)
                 setattr(self, name, np.concatenate([a, a[sel]]))
+        self.deltas = {k: np.concatenate([a, a[sel]]) for k, a in self.deltas.items()}
         new = self.n + np.arange(len(sel))
         self.n += len(sel)
         return new
@@ -177,14 +182,29 @@ class Flowsheet:
         T_source,out, with their parameters; fresh warm-start memory."""
         pick = lambda a: None if a is None else np.asarray(a, dtype=float)[sel]   # noqa: E731
         return Flowsheet(self.par, self.tab, self.ls, self.hs, self.T_si[sel], self.T_so[sel],
-                         self.T_ki[sel], self.V_s[sel], self.V_k[sel], pick(self.R_th_f), pick(self.cond))
+                         self.T_ki[sel], self.V_s[sel], self.V_k[sel], pick(self.R_th_f), pick(self.cond),
+                         {k: a[sel] for k, a in self.deltas.items()})
+
+    def comp(self, stage: str, idx):
+        """The stage's compressor for the rows idx: with per-row curve differences (``deltas``) a
+        ``LearnedCompressor`` whose ``delta_is``/``delta_vol`` hold those rows' coefficients (a
+        transient object for one vectorised call); else the flowsheet's own."""
+        base = self.ls if stage == "LS" else self.hs
+        if not self.deltas:
+            return base
+        kw = {}
+        for curve in ("is", "vol"):
+            a = self.deltas.get(f"{stage}_{curve}")
+            if a is not None:
+                kw[f"delta_{curve}"] = tuple(a[idx].T)
+        return dataclasses.replace(base, **kw) if kw else base
 
     def ls_speed_at(self, idx, T_so, T_m) -> np.ndarray:
         """The LS speed ratio [-] of the rows idx at T_source,out T_so and T_m [K] (the LS side alone;
         the rows' stored state is left as it is, so a row may appear several times)."""
         Q, _, p_e, _, h1, _, rho1, _ = self.source(idx, T_so)
         p_m, h_f_m = self.tab.sat(T_m)[:2]
-        return speed_v(self.ls, Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
+        return speed_v(self.comp("LS", idx), Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
 
     def ls_speed(self, idx, T_m, sat_m=None):
         """LS speed ratio [-], eta_vol, m_LS [kg/s] and pressure ratio for the rows idx: the LS side
@@ -192,7 +212,7 @@ class Flowsheet:
         p_m, h_f_m = (sat_m[0], sat_m[1]) if sat_m is not None else self.tab.sat(T_m)[:2]
         m_LS = self.Q_s[idx] / (self.h1[idx] - h_f_m)
         pi = p_m / self.p_e[idx]
-        n_LS, ev = speed_v(self.ls, m_LS, self.rho1[idx], pi, self.n_LS[idx])
+        n_LS, ev = speed_v(self.comp("LS", idx), m_LS, self.rho1[idx], pi, self.n_LS[idx])
         return n_LS, ev, m_LS, pi
 
     # ---- intermediate side: fixed by T_m ----------------------------------------------------------
@@ -203,7 +223,7 @@ class Flowsheet:
         Tq = np.where(inside, T_m, VAP_T_MIN)
         p_m, h_f_m, h_g_m, s_g_m, rho_g_m = tab.sat_raw(Tq)
         n_LS, ev_LS, m_LS, pi = self.ls_speed(idx, Tq, (p_m, h_f_m))
-        eta = self.ls.eta_is_v(pi, n_LS)
+        eta = self.comp("LS", idx).eta_is_v(pi, n_LS)
         ds = self.s1[idx] - s_g_m
         h2s = tab.isen_raw(Tq, ds)
         h1 = self.h1[idx]
@@ -227,7 +247,7 @@ class Flowsheet:
         ``full``: every state."""
         if ms is None:
             ms = self.m_side(idx, T_m)
-        tab, hs = self.tab, self.hs
+        tab, hs = self.tab, self.comp("HS", idx)
         inside = (T_c >= T_RANGE[0]) & (T_c <= T_RANGE[1])
         Tq = np.where(inside, T_c, T_RANGE[0])
         p_c, h_f_c, h_g_c, s_g_c, _ = tab.sat_raw(Tq)

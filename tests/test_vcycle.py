@@ -36,6 +36,7 @@ EOS_TOL = 1e-6            # SC outlet enthalpy against the EOS at (p_c, T_SC), r
 COMP_REL = 1e-12          # vectorised compressor methods against the scalar ones
 NEAR_LIMIT = 1e-6         # status exemption distance (relative to N_nom; K for the pinch)
 AMB = 1.01325
+DRAW_REL = 1e-9       # per-row draws against one call per draw (the same iterations)
 SET_POINTS = np.arange(4.0, 24.01, 1.0)
 NOMINAL = {"T_source_in": 25.0, "T_source_out": 18.0, "T_sink_in": 40.0, "V_source": 192.0,
            "V_sink": 62.0}
@@ -174,6 +175,69 @@ def test_agrees_with_learned_compressors(plant, learned, ls_mode):
 def test_agrees_with_an_uncertainty_draw_of_the_learned_curves(learned_delta):
     assert learned_delta.comp_HS.delta_is is not None
     check_agreement(learned_delta, grid(full=False).iloc[::3], "float")
+
+
+def _draw_learner(plant):
+    """A learner with local curves (``learned_params``'s observations) and three of its draws."""
+    rng = np.random.default_rng(0)
+    k = 3000
+    obs = {c: np.full(k, np.nan) for c in OBS_COLUMNS}
+    obs["t"] = np.arange(k) * 60.0
+    for st, pi0, n0 in (("LS", 2.4, 1.05), ("HS", 1.9, 1.0)):
+        obs[f"pi_{st}"] = rng.normal(pi0, 0.25, k)
+        obs[f"n_{st}"] = rng.normal(n0, 0.1, k)
+        obs[f"eta_is_{st}"] = 0.77 - 0.03 * (obs[f"pi_{st}"] - 2.4) ** 2 + rng.normal(0, 0.002, k)
+        obs[f"eta_vol_{st}"] = 0.93 - 0.03 * obs[f"pi_{st}"] + rng.normal(0, 0.002, k)
+        obs[f"drive_{st}"] = np.full(k, 1.03)
+    learner = CompressorLearner(plant)
+    learner.update(pd.DataFrame(obs))
+    return learner, learner.draws(3, np.random.default_rng(7))
+
+
+def test_per_row_curve_draws_answer_as_one_call_per_draw(plant):
+    """``solve_many(deltas=...)``: the uncertainty draws of a window in one call give every row the
+    numbers a call with that draw's compressors (and its R_th,f) gives."""
+    learner, draws = _draw_learner(plant)
+    df = grid(full=False).iloc[::6].reset_index(drop=True)
+    n = len(df)
+    R = [0.0, 2e-6, 4e-6]
+    sep = []
+    for d, r in zip(draws, R):
+        par = plant.replace(comp_LS=learner.compressor("LS", delta=d["LS"]),
+                            comp_HS=learner.compressor("HS", delta=d["HS"]), R_th_f=r)
+        sep.append(solve_many(df, par, ls_mode="float").frame())
+    base = plant.replace(comp_LS=learner.compressor("LS", delta=draws[0]["LS"]),
+                         comp_HS=learner.compressor("HS", delta=draws[0]["HS"]))
+    deltas = {f"{st}_{c[4:]}": np.repeat([d[st][c] for d in draws], n, axis=0)
+              for st in ("LS", "HS") for c in ("eta_is", "eta_vol")}
+    one = solve_many(pd.concat([df] * 3, ignore_index=True), base, ls_mode="float",
+                     R_th_f=np.repeat(R, n), deltas=deltas).frame()
+    ref = pd.concat(sep, ignore_index=True)
+    assert (one["status"].to_numpy() == ref["status"].to_numpy()).all()
+    solved = ref["Q_sink_kW"].notna().to_numpy()
+    assert solved.sum() > n                       # most rows of each draw solve
+    for k in ("Q_sink_kW", "W_total_kW", "COP", "p_m_bar", "N_LS_rpm", "N_HS_rpm", "T_source_out_C"):
+        a, b = one[k].to_numpy()[solved], ref[k].to_numpy()[solved]
+        assert np.max(np.abs(a - b) / np.maximum(np.abs(b), 1.0)) <= DRAW_REL, k
+    # the draws differ from each other, so the rows did get their own curves
+    cop = one["COP"].to_numpy().reshape(3, n)
+    both = np.isfinite(cop).all(axis=0)
+    assert np.max(np.abs(cop[0, both] - cop[1, both])) > 1e-4
+
+
+def test_per_row_curve_draws_are_checked(plant):
+    df = grid(full=False).iloc[:4]
+    learner, draws = _draw_learner(plant)
+    base = plant.replace(comp_LS=learner.compressor("LS", delta=draws[0]["LS"]))
+    with pytest.raises(ValueError, match=re.escape("deltas: unknown key 'LS_eta' (known: LS_is, LS_vol, "
+                                                   "HS_is, HS_vol)")):
+        solve_many(df, base, deltas={"LS_eta": np.zeros((4, 6))})
+    with pytest.raises(ValueError, match=re.escape("deltas['LS_is'] must be finite, shape (4, 6), got "
+                                                   "shape (3, 6)")):
+        solve_many(df, base, deltas={"LS_is": np.zeros((3, 6))})
+    with pytest.raises(ValueError, match=re.escape("deltas['HS_vol']: the HS compressor has no learned "
+                                                   "curves (Compressor)")):
+        solve_many(df, base, deltas={"HS_vol": np.zeros((4, 6))})
 
 
 def test_frame_layout_equals_frame_of_and_the_set_point_override(plant):

@@ -40,9 +40,10 @@ from dataclasses import dataclass, fields
 import numpy as np
 import pandas as pd
 
+from .. import batch
 from ..batch import INPUT_COLUMNS
-from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, groups, representative,
-                        search, window_range)
+from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
+                        representative, search, window_range)
 from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner
 
@@ -375,19 +376,51 @@ def advise(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner
                                       R_th_f_se_K_per_kW, measured, sp_override), previous_rec_barg)
 
 
-def _draw_params(adaptive: PlantParams, learner: CompressorLearner, s: AdviceSettings,
-                 R_th_f_se_K_per_kW: float) -> list[PlantParams]:
-    """The adaptive model under each uncertainty draw of the learned curves (and of R_th,f), from
-    the fixed seed: the same window always gives the same draws."""
+def _draw_specs(adaptive: PlantParams, learner: CompressorLearner, s: AdviceSettings,
+                R_th_f_se_K_per_kW: float) -> list[tuple[dict, float]]:
+    """The uncertainty draws of the learned curves (and of R_th,f) from the fixed seed: the same
+    window always gives the same draws. [(curve differences per stage, R_th,f [K/W]), ...]."""
     rng = np.random.default_rng(s.seed)
     out = []
     for d in learner.draws(int(s.uncertainty_draws), rng):
-        par = _with_draw(adaptive, learner, d)
+        R = adaptive.R_th_f
         if R_th_f_se_K_per_kW and math.isfinite(R_th_f_se_K_per_kW):
-            par = par.replace(R_th_f=max(0.0, par.R_th_f + 1e-3 * R_th_f_se_K_per_kW
-                                         * float(rng.standard_normal())))
-        out.append(par)
+            R = max(0.0, R + 1e-3 * R_th_f_se_K_per_kW * float(rng.standard_normal()))
+        out.append((d, R))
     return out
+
+
+def _draw_params(adaptive: PlantParams, learner: CompressorLearner, s: AdviceSettings,
+                 R_th_f_se_K_per_kW: float) -> list[PlantParams]:
+    """The adaptive model under each uncertainty draw (``_draw_specs``)."""
+    out = []
+    for d, R in _draw_specs(adaptive, learner, s, R_th_f_se_K_per_kW):
+        par = _with_draw(adaptive, learner, d)
+        out.append(par.replace(R_th_f=R) if R != par.R_th_f else par)
+    return out
+
+
+_CURVE_KEY = {"eta_is": "is", "eta_vol": "vol"}
+
+
+def _draws_at(rows: pd.DataFrame, w: np.ndarray, adaptive: PlantParams, learner: CompressorLearner,
+              s: AdviceSettings, R_th_f_se_K_per_kW: float, sps: list,
+              guess_from: Evaluator | None) -> list[list[Point]]:
+    """The representative rows at the set points ``sps`` under each uncertainty draw: out[k][j] as
+    ``Evaluator(rows, w, draw k's parameters, guess_from=guess_from).at_many(sps)[j]``. With the
+    vectorised solver every draw in one call (``model.optimize.draw_points``)."""
+    specs = _draw_specs(adaptive, learner, s, R_th_f_se_K_per_kW)
+    if not specs:
+        return []
+    base = _with_draw(adaptive, learner, specs[0][0])
+    keys = {f"{st}_{_CURVE_KEY[c]}": (st, c) for st in STAGES for c in _CURVE_KEY
+            if c in (specs[0][0].get(st) or {})}
+    learned = all(hasattr(getattr(base, f"comp_{st}"), "delta_is") for st, _ in keys.values())
+    if not (batch.VECTORISED and keys and learned):
+        return [Evaluator(rows, w, par, guess_from=guess_from).at_many(sps)
+                for par in _draw_params(adaptive, learner, s, R_th_f_se_K_per_kW)]
+    deltas = {key: np.array([d[st][c] for d, _ in specs], dtype=float) for key, (st, c) in keys.items()}
+    return draw_points(rows, w, base, sps, [R for _, R in specs], deltas, guess_from=guess_from)
 
 
 def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
@@ -474,9 +507,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     sd_opt, draws_ref = math.nan, []
     if learner is not None and s.uncertainty_draws >= 2:
         vals = []
-        for par in _draw_params(adaptive, learner, s, R_th_f_se_K_per_kW):
-            e = Evaluator(rows, w, par, guess_from=ev)
-            b, a = e.at_many([None, sp_opt])
+        for b, a in _draws_at(rows, w, adaptive, learner, s, R_th_f_se_K_per_kW, [None, sp_opt], ev):
             draws_ref.append(b.COP if b.ok else None)
             if a.ok and b.ok:
                 vals.append(100.0 * (a.COP / b.COP - 1.0))
@@ -538,7 +569,8 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     evaluations = d.evaluations
     ev = None
     if previous_rec_barg is not None and math.isfinite(previous_rec_barg) and lo <= previous_rec_barg <= hi:
-        ev = Evaluator(d.rows, d.w, d.adaptive)
+        # rows start from the draft's own solutions at the nearest set point (same rows, same model)
+        ev = Evaluator(d.rows, d.w, d.adaptive, guess_from=d.ev)
         p_prev = ev.at(previous_rec_barg)
         feasible = _feasible(d.trusted, d.w, d.amb)
         # held only where the plant has run (the covered stretch): in the extension the curves
@@ -557,7 +589,8 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     if sp_rec == sp_opt:
         rec, sd = opt, d.sd_opt
     else:
-        full = Evaluator(d.data, np.ones(len(d.data)), d.adaptive)
+        ev = ev or Evaluator(d.rows, d.w, d.adaptive, guess_from=d.ev)
+        full = Evaluator(d.data, np.ones(len(d.data)), d.adaptive, guess_from=ev)
         rec = full.at(sp_rec)
         evaluations += full.evals
         if not rec.ok:
@@ -567,13 +600,12 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
         sd = math.nan
         if d.learner is not None and s.uncertainty_draws >= 2:
             vals = []
-            for par, b in zip(_draw_params(d.adaptive, d.learner, s, d.R_th_f_se_K_per_kW), d.draws_ref):
-                a = Evaluator(d.rows, d.w, par, guess_from=ev).at(sp_rec)
+            at_rec = _draws_at(d.rows, d.w, d.adaptive, d.learner, s, d.R_th_f_se_K_per_kW, [sp_rec], ev)
+            for (a,), b in zip(at_rec, d.draws_ref):
                 if a.ok and b is not None:
                     vals.append(100.0 * (a.COP / b - 1.0))
             if len(vals) >= 2:
                 sd = float(np.std(vals, ddof=1))
-        ev = ev or Evaluator(d.rows, d.w, d.adaptive)
         sd = math.hypot(sd, _shape_at(d.learner, d.adaptive, d.offsets, s, ev.at(sp_rec)))
     dcop = 100.0 * (rec.COP / ref.COP - 1.0)
     dq = 100.0 * (rec.Q_sink_kW / ref.Q_sink_kW - 1.0)

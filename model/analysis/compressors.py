@@ -821,6 +821,7 @@ class LearnedCompressor(Compressor):
         Q, in_pi = loc.rows_at(pi)
         c = self.eta_vol
         dl = self.delta_vol
+        rowwise = dl is not None and np.ndim(dl[0]) > 0     # per-row draws (Flowsheet.comp)
         zp_all = (pi - _Z[0]) / _Z[1]
 
         def phi(rows, nn):
@@ -831,11 +832,12 @@ class LearnedCompressor(Compressor):
                          + c[5] * nn * nn)
             d = np.where(inside, d, c[2] + c[4] * p + 2.0 * c[5] * nn)
             if dl is not None:
+                a = [x[rows] for x in dl] if rowwise else dl
                 zp = zp_all[rows]
                 zn = (nn - _Z[2]) / _Z[3]
-                v = v + (dl[0] + dl[1] * zp + dl[2] * zn + dl[3] * zp * zp + dl[4] * zp * zn
-                         + dl[5] * zn * zn)
-                d = d + (dl[2] + dl[4] * zp + 2.0 * dl[5] * zn) / _Z[3]
+                v = v + (a[0] + a[1] * zp + a[2] * zn + a[3] * zp * zp + a[4] * zp * zn
+                         + a[5] * zn * zn)
+                d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
             return v * nn, v + nn * d
 
         m_rows = len(target)

@@ -196,7 +196,8 @@ class Evaluator:
     numbers."""
 
     def __init__(self, rows: pd.DataFrame, weights: np.ndarray, params: PlantParams,
-                 ls_mode: str = "float", guess_from: "Evaluator | None" = None) -> None:
+                 ls_mode: str = "float", guess_from: "Evaluator | None" = None,
+                 seed: tuple | None = None) -> None:
         self.rows = rows.reset_index(drop=True)
         self.w = np.asarray(weights, dtype=float)
         self.params = params
@@ -212,7 +213,20 @@ class Evaluator:
         # the vectorised solver starts rows from another evaluator's rows too when they are other
         # rows (e.g. the window's samples from its representative points): each from the nearest
         self._seed = guess_from if guess_from is not None and self._other is None else None
-        self._seed_map = nearest_rows(self.rows, guess_from.rows) if self._seed is not None else None
+        if self._seed is None and seed is not None and seed[0] is not None:
+            # (VResult, its rows): solutions of other rows at their own set points (e.g. the
+            # condenser factor's), a start for these rows at theirs, each from the nearest
+            self._seed = Evaluator._holding(seed[1], params, seed[0])
+        self._seed_map = nearest_rows(self.rows, self._seed.rows) if self._seed is not None else None
+
+    @staticmethod
+    def _holding(rows: pd.DataFrame, params: PlantParams, vres) -> "Evaluator":
+        """An Evaluator of ``rows`` whose own-set-point solution is ``vres`` (a seed)."""
+        ev = Evaluator(rows, np.ones(len(rows)), params)
+        p = _point(None, None, ev.w, cols=vres.columns(COLUMNS), index=ev.rows.index)
+        p.vres = vres
+        ev._cache[None] = p
+        return ev
 
     def _nearest(self, i: int, sp: float):
         """The warm start of row i at set point sp: its own solution nearest in set point (the

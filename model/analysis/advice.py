@@ -426,9 +426,12 @@ def _draws_at(rows: pd.DataFrame, w: np.ndarray, adaptive: PlantParams, learner:
 def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
                  settings: AdviceSettings, coverage_share: float = 1.0,
                  curve_residual: dict | None = None, R_th_f_se_K_per_kW: float = 0.0,
-                 measured: dict | None = None, sp_override: float | None = None) -> AdviceDraft:
+                 measured: dict | None = None, sp_override: float | None = None,
+                 seed: tuple | None = None) -> AdviceDraft:
     """The model optimum of the window and everything about it (see ``advise``) except the dead
-    band against the previous recommendation, which ``settle_advice`` applies."""
+    band against the previous recommendation, which ``settle_advice`` applies. ``seed``: (VResult,
+    rows) of nearby solutions at the rows' own set points (the chain's condenser factor's) to start
+    the representative points from."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
@@ -443,7 +446,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     # the representative points first: the window's samples start from them (vectorised solver)
     parts = groups(data, s.representative_points)
     rows, w = representative(data, s.representative_points, parts)
-    ev = Evaluator(rows, w, adaptive)
+    ev = Evaluator(rows, w, adaptive, seed=seed)
     ev.at(None)
     full = Evaluator(data, np.ones(len(data)), adaptive, guess_from=ev)
     ref = full.at(None)

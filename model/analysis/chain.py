@@ -290,7 +290,8 @@ def scale_condenser(params: PlantParams, k: float) -> PlantParams:
 
 
 def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
-                     points: int = 8, tol_bar: float = 0.002) -> tuple[float, float]:
+                     points: int = 8, tol_bar: float = 0.002,
+                     solution: list | None = None) -> tuple[float, float]:
     """The factor k on the condenser unit's conductance that makes the model's mean condensing
     pressure equal the measured one over the window (evaluated on ``points`` representative
     operating points at the actual set points), and the model's p_c error before it [bar].
@@ -304,7 +305,8 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     COND_SLOPE_BAR bar per unit of ln k), k within [0.3, 3], halving a step back toward the last
     solved k where the model cannot solve every point; (NaN, err) when it does not converge. The
     answer depends on the start ``k0`` only within ``tol_bar`` (the chain starts every window at 1,
-    so windows are independent of each other)."""
+    so windows are independent of each other). ``solution``: a list that gets (VResult, rows) of
+    the representative points at the factor returned (the chain's later runs start from it)."""
     parts = groups(der, points)
     rows, w = representative(der, points, parts)
     meas = der["p_c_bar"].to_numpy(dtype=float)
@@ -321,12 +323,17 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
         last[0] = v
         return float(np.sum(w * f["p_c_bar"].to_numpy(dtype=float)) / w.sum()) - target
 
+    def found(k: float) -> float:
+        if solution is not None and last[0] is not None:
+            solution.append((last[0], rows))
+        return k
+
     e1 = err(0.0)
     if not math.isfinite(e1) or not math.isfinite(target):
         return math.nan, e1
     x0, f0 = 0.0, e1
     if abs(f0) < tol_bar:
-        return 1.0, e1
+        return found(1.0), e1
     x1 = math.log(k0) if abs(math.log(k0)) > 1e-6 else min(max(e1 / COND_SLOPE_BAR, -0.5), 0.5)
     for _ in range(COND_MAX_ITER):
         f1 = err(x1)
@@ -338,7 +345,7 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
         if not math.isfinite(f1):
             return math.nan, e1
         if abs(f1) < tol_bar:
-            return math.exp(x1), e1
+            return found(math.exp(x1)), e1
         if f1 == f0:
             break
         x0, f0, x1 = x1, f1, min(max(x1 - f1 * (x1 - x0) / (f1 - f0), lo), hi)
@@ -539,8 +546,12 @@ class AnalysisChain:
         out.fouling = fc
         adaptive = fc.apply(base)
         # the condenser unit's conductance to this window's measured condensing pressure
+        seed = None         # solutions of the window's representative points: later runs start there
         if self.s.condenser_correction:
-            k, err = condenser_factor(der, adaptive, 1.0, self.s.advice.representative_points)
+            sol = []
+            k, err = condenser_factor(der, adaptive, 1.0, self.s.advice.representative_points,
+                                      solution=sol)
+            seed = sol[0] if sol and math.isfinite(k) else None
             res.CF_cond_window = k
             res.p_c_error_bar = err
             if math.isfinite(k):
@@ -550,7 +561,7 @@ class AnalysisChain:
         res.detail["calibration"] = fc.to_dict()
         res.detail["adaptive_params"] = adaptive
         self._fouling_figures(res, fc, fixed, adaptive, der)
-        self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive)
+        self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive, seed)
         # ---- compressor residuals and drift at this window's operating point
         if learner is not None and obs is not None:
             for st in STAGES:
@@ -591,7 +602,8 @@ class AnalysisChain:
                     adv_in, adaptive, learner, self.s.advice,
                     coverage_share=res.coverage_share if learner is not None else 1.0,
                     curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
-                    R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override)
+                    R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override,
+                    seed=seed)
                 out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
                 d = out.draft
                 base_pt = d.ev._cache.get(None) if d.ev is not None else None
@@ -716,7 +728,7 @@ class AnalysisChain:
         res.calibration_warnings = "; ".join(fc.warnings)
 
     def _model_figures(self, res: WindowResult, der: pd.DataFrame, fixed: PlantParams,
-                       adaptive: PlantParams) -> None:
+                       adaptive: PlantParams, seed: tuple | None = None) -> None:
         cols = ("Q_sink_kW", "W_total_kW", "COP")
         n = len(der)
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
@@ -727,7 +739,8 @@ class AnalysisChain:
         m = len(inputs)
         both_in = pd.concat([inputs, inputs])
         sim = simulate_many(both_in, adaptive, columns=cols,
-                            R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)])
+                            R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)],
+                            seed=seed[0] if seed else None, seed_rows=seed[1] if seed else None)
         sim_f, sim_a = sim.iloc[:m].copy(), sim.iloc[m:].copy()
         both = solved_mask(sim_f) & solved_mask(sim_a)
         meas_cop = sub["COP"].to_numpy(dtype=float)[both]

@@ -47,6 +47,8 @@ CURVES = ("eta_is", "eta_vol")
 T_C_LOCATIONS = ("auto", "condenser_outlet", "subcooler_outlet")
 DAY_S = 86400.0
 _Z = (2.5, 1.0, 1.0, 0.3)        # internal scaling: z_pi = (pi - 2.5)/1.0, z_n = (n - 1)/0.3
+SPEED_STEP_TOL = 1e-9          # the learned curves' speed search ends with a Newton step below this: the
+                               # error after it is ~ the step squared (a further step would be < 1e-17)
 _NODE_PAIR = np.array([0, 1])    # a cell's two node columns (LocalCurves.value_dn_rows)
 
 
@@ -842,24 +844,29 @@ class LearnedCompressor(Compressor):
 
         m_rows = len(target)
         every = np.arange(m_rows)
-        # both ends in one call (row by row the same numbers as two)
-        f_b, d_b = phi(np.concatenate([every, every]),
-                       np.concatenate([np.full_like(target, n_lo), np.full_like(target, n_hi)]))
-        f_lo, f_hi, d_lo, d_hi = f_b[:m_rows], f_b[m_rows:], d_b[:m_rows], d_b[m_rows:]
+        n = np.clip(np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float), n_lo, n_hi)
+        n = np.where(np.isfinite(n), n, 1.0)
+        # both ends and the first Newton point in one call (row by row the same numbers as three)
+        f_b, d_b = phi(np.concatenate([every, every, every]),
+                       np.concatenate([np.full_like(target, n_lo), np.full_like(target, n_hi), n]))
+        f_lo, f_hi, f_0 = f_b[:m_rows], f_b[m_rows:2 * m_rows], f_b[2 * m_rows:]
+        d_lo, d_hi, d_0 = d_b[:m_rows], d_b[m_rows:2 * m_rows], d_b[2 * m_rows:]
         bad = ~((d_lo > 0.0) & (d_hi > 0.0)) | ~np.isfinite(target)   # NaN inputs: NaN out, unbisected
         above, below = target > f_hi, target < f_lo
         with np.errstate(divide="ignore", invalid="ignore"):
             n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
             bad |= below & ~above & ~(n_out > 0.0)
-        n = np.clip(np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float), n_lo, n_hi)
-        n = np.where(np.isfinite(n), n, 1.0)
         a, b = np.full_like(target, n_lo), np.full_like(target, n_hi)
         act = np.flatnonzero(~(above | below | bad))
+        first = True
         for _ in range(60):
             if not len(act):
                 break
             na = n[act]
-            f, df = phi(act, na)
+            if first:
+                f, df, first = f_0[act], d_0[act], False
+            else:
+                f, df = phi(act, na)
             hi = f > target[act]
             b[act] = np.where(hi, na, b[act])
             a[act] = np.where(hi, a[act], na)
@@ -869,7 +876,7 @@ class LearnedCompressor(Compressor):
             aa, bb = a[act], b[act]
             nn = np.where((aa <= nn) & (nn <= bb), nn, 0.5 * (aa + bb))
             n[act] = nn
-            act = act[~(np.abs(nn - na) < 1e-13)]
+            act = act[~(np.abs(nn - na) < SPEED_STEP_TOL)]
         n = np.where(above | below, n_out, n)
         with np.errstate(divide="ignore", invalid="ignore"):
             ev = target / n
@@ -915,7 +922,7 @@ class LearnedCompressor(Compressor):
             nn = n - step
             if not a <= nn <= b:
                 nn = 0.5 * (a + b)
-            if abs(nn - n) < 1e-13:
+            if abs(nn - n) < SPEED_STEP_TOL:
                 n = nn
                 break
             n = nn

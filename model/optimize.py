@@ -434,18 +434,9 @@ def _concat(vs: list):
 
 
 def _take(v, idx: np.ndarray):
-    """The rows ``idx`` of a VResult (every per-row array sliced)."""
-    n = len(v)
-    kw = {}
-    for f in dataclasses.fields(v):
-        val = getattr(v, f.name)
-        if isinstance(val, np.ndarray) and val.shape[:1] == (n,):
-            val = val[idx]
-        elif isinstance(val, dict):
-            val = {a: (b[idx] if isinstance(b, np.ndarray) and b.shape[:1] == (n,) else b)
-                   for a, b in val.items()}
-        kw[f.name] = val
-    return type(v)(**kw)
+    """The rows ``idx`` of a VResult (``model.vcycle.take_rows``)."""
+    from .vcycle import take_rows
+    return take_rows(v, idx)
 
 
 def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: dict | None = None,

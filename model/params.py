@@ -128,51 +128,59 @@ class Compressor:
         ValueError (a curve whose flow does not rise with speed, a flow too small for any speed).
         The same Newton on the cubic; once a step is below 1e-7 the next is below 1e-13 (quadratic
         convergence), so that step is the last (the scalar method takes one more, below 1e-13)."""
-        c0, c1, c2, c3, c4, c5 = self.eta_vol
-        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
-        with np.errstate(all="ignore"):
-            m, rho_suc, pi = (np.asarray(x, dtype=float) for x in (m, rho_suc, pi))
-            a0 = c0 + pi * (c1 + c3 * pi)                    # eta_vol = a0 + a1 n + a2 n^2
-            a1 = c2 + c4 * pi
-            target = m / (rho_suc * self.swept_volume)
-            # phi(n) = (a0 + a1 n + c5 n^2) n and its slope at the bounds, as polynomials in pi
-            f_lo = n_lo * (c0 + n_lo * (c2 + c5 * n_lo)) + pi * (n_lo * (c1 + c4 * n_lo) + c3 * n_lo * pi)
-            f_hi = n_hi * (c0 + n_hi * (c2 + c5 * n_hi)) + pi * (n_hi * (c1 + c4 * n_hi) + c3 * n_hi * pi)
-            d_lo = (c0 + n_lo * (2.0 * c2 + 3.0 * c5 * n_lo)) + pi * (c1 + 2.0 * c4 * n_lo + c3 * pi)
-            d_hi = (c0 + n_hi * (2.0 * c2 + 3.0 * c5 * n_hi)) + pi * (c1 + 2.0 * c4 * n_hi + c3 * pi)
-            bad = ~((d_lo > 0.0) & (d_hi > 0.0))
-            above, below = target > f_hi, target < f_lo
-            out = above | below
-            inside = ~(out | bad)
-            n = np.ones(target.shape) if n0 is None else np.asarray(n0, dtype=float)
-            n = np.minimum(np.maximum(np.where(n == n, n, 1.0), n_lo), n_hi)
-            concave = c5 <= 0.0      # the slope is concave in n: positive inside where at both bounds
-            for _ in range(50):
-                df = a0 + n * (2.0 * a1 + 3.0 * c5 * n)
-                if not concave:
-                    rising = df > 0.0
-                    bad |= inside & ~rising
-                    inside &= rising
-                step = np.where(inside, ((a0 + n * (a1 + n * c5)) * n - target) / df, 0.0)
-                finite = np.isfinite(step)      # a NaN row (NaN inputs) must not end the others'
-                bad |= ~finite                  # iteration (NaN >= 1e-7 is False)
-                inside &= finite
-                step = np.where(finite, step, 0.0)
-                n = np.minimum(np.maximum(n - step, n_lo), n_hi)
-                if not np.abs(step).max(initial=0.0) >= 1e-7:
-                    break
-            ev = a0 + n * (a1 + n * c5)
-            if out.any():
-                n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
-                bad |= below & ~above & ~(n_out > 0.0)
-                n = np.where(out, n_out, n)
-                ev = np.where(out, target / n_out, ev)
-            if bad.any():
-                n, ev = np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
-        return n, ev
+        return cubic_speed(self.eta_vol, self.swept_volume, self.N_min / self.N_nom, self.N_max / self.N_nom,
+                           m, rho_suc, pi, n0)
 
     def replace(self, **kw) -> "Compressor":
         return dataclasses.replace(self, **kw)
+
+
+def cubic_speed(c, swept_volume: float, n_lo: float, n_hi: float, m, rho_suc, pi, n0=None):
+    """``Compressor.speed_for_flow_v`` for the curve coefficients ``c`` (six scalars, or six arrays
+    with one curve per row: a stage's compressors of several windows at once)."""
+    c0, c1, c2, c3, c4, c5 = c
+    with np.errstate(all="ignore"):
+        m, rho_suc, pi = (np.asarray(x, dtype=float) for x in (m, rho_suc, pi))
+        a0 = c0 + pi * (c1 + c3 * pi)                    # eta_vol = a0 + a1 n + a2 n^2
+        a1 = c2 + c4 * pi
+        target = m / (rho_suc * swept_volume)
+        # phi(n) = (a0 + a1 n + c5 n^2) n and its slope at the bounds, as polynomials in pi
+        f_lo = n_lo * (c0 + n_lo * (c2 + c5 * n_lo)) + pi * (n_lo * (c1 + c4 * n_lo) + c3 * n_lo * pi)
+        f_hi = n_hi * (c0 + n_hi * (c2 + c5 * n_hi)) + pi * (n_hi * (c1 + c4 * n_hi) + c3 * n_hi * pi)
+        d_lo = (c0 + n_lo * (2.0 * c2 + 3.0 * c5 * n_lo)) + pi * (c1 + 2.0 * c4 * n_lo + c3 * pi)
+        d_hi = (c0 + n_hi * (2.0 * c2 + 3.0 * c5 * n_hi)) + pi * (c1 + 2.0 * c4 * n_hi + c3 * pi)
+        bad = ~((d_lo > 0.0) & (d_hi > 0.0))
+        above, below = target > f_hi, target < f_lo
+        out = above | below
+        inside = ~(out | bad)
+        n = np.ones(target.shape) if n0 is None else np.asarray(n0, dtype=float)
+        n = np.minimum(np.maximum(np.where(n == n, n, 1.0), n_lo), n_hi)
+        concave = c5 <= 0.0      # the slope is concave in n: positive inside where at both bounds
+        for _ in range(50):
+            df = a0 + n * (2.0 * a1 + 3.0 * c5 * n)
+            if not np.all(concave):
+                rising = df > 0.0
+                if np.ndim(concave):
+                    rising |= concave
+                bad |= inside & ~rising
+                inside &= rising
+            step = np.where(inside, ((a0 + n * (a1 + n * c5)) * n - target) / df, 0.0)
+            finite = np.isfinite(step)      # a NaN row (NaN inputs) must not end the others'
+            bad |= ~finite                  # iteration (NaN >= 1e-7 is False)
+            inside &= finite
+            step = np.where(finite, step, 0.0)
+            n = np.minimum(np.maximum(n - step, n_lo), n_hi)
+            if not np.abs(step).max(initial=0.0) >= 1e-7:
+                break
+        ev = a0 + n * (a1 + n * c5)
+        if out.any():
+            n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
+            bad |= below & ~above & ~(n_out > 0.0)
+            n = np.where(out, n_out, n)
+            ev = np.where(out, target / n_out, ev)
+        if bad.any():
+            n, ev = np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
+    return n, ev
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ from .params import Compressor, PlantParams
 from .units import BAR, C_to_K, K_to_C, Pa_to_barg, barg_to_Pa, m3h_to_m3s
 from .vflowsheet import Flowsheet
 from .vfloat import FloatLS
+from . import lockstep
 from .vtasks import run
 from .vsolve import FALLBACK, HS_MAX, Outcome, solve_cold
 from .vwarm import SCALAR_COLD_MAX, WarmPlan, WarmSolve, borrow, empty_state, take_state, usable
@@ -274,12 +275,110 @@ def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: st
                 raise ValueError(f"guess_index must give one row of guess (0..{len(guess) - 1}) or -1 per row")
     elif guess_index is not None:
         raise ValueError("guess_index without guess")
+    req = dict(rows=rows, params=params, p_m_sp=p_m_sp, ls_mode=ls_mode, force_scalar=force_scalar,
+               guess=guess, gi=gi, R_th_f=per_row.get("R_th_f"), cond_factor=per_row.get("cond_factor"),
+               deltas=dl)
+    ans = lockstep.request(req)         # under model.lockstep.run: answered with other threads' calls
+    return ans if ans is not None else solve_direct(req)
+
+
+def solve_direct(req: dict) -> VResult:
+    """A validated ``solve_many`` call (its keyword arguments, ``guess_index`` resolved to ``gi``)."""
     with np.errstate(all="ignore"):          # failed rows carry NaN through the arrays
-        return _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi,
-                           per_row.get("R_th_f"), per_row.get("cond_factor"), dl)
+        return _solve_many(req["rows"], req["params"], req["p_m_sp"], req["ls_mode"], req["force_scalar"],
+                           req["guess"], req["gi"], req["R_th_f"], req["cond_factor"], req["deltas"])
 
 
 DELTA_KEYS = ("LS_is", "LS_vol", "HS_is", "HS_vol")
+# the parameters that may differ between calls answered together (solve_merged): per row in the
+# flowsheet; every other field must be equal
+PER_ROW_FIELDS = ("comp_LS", "comp_HS", "CF_DSH", "CF_con", "CF_SC", "R_th_f", "CF_dp_f", "extra")
+
+
+def merge_key(req: dict):
+    """Requests (``solve_many``'s keyword arguments, validated) with the same key can be answered
+    by one ``solve_merged`` call; None: this one cannot (it is answered alone)."""
+    from .analysis.stacked import stackable
+    params = req["params"]
+    if req.get("force_scalar") is not None or not stackable([params.comp_LS]) \
+            or not stackable([params.comp_HS]):
+        return None
+    shared = tuple((f.name, getattr(params, f.name)) for f in dataclasses.fields(params)
+                   if f.name not in PER_ROW_FIELDS)
+    comps = tuple(tuple(getattr(getattr(params, st), k) for k in ("N_nom", "N_min", "N_max", "swept_volume"))
+                  for st in ("comp_LS", "comp_HS"))
+    return req["ls_mode"], shared, comps
+
+
+def solve_merged(reqs: list[dict]) -> list[VResult]:
+    """Several ``solve_many`` calls (their keyword arguments, validated; one ``merge_key``) in one:
+    the rows of all, each with its call's parameters (its own compressors through
+    ``model.analysis.stacked.Stacked``, R_th,f, condenser and CF_dp,f factors, curve differences)
+    and warm start. Returns each call's VResult. Row by row the operations are those of the
+    separate call; what can differ are the decisions the solver takes over all its rows at once
+    (how many rows leave the warm path for the scalar solver, when the global-curve speed search
+    stops), within the solver's tolerances."""
+    from .analysis.stacked import Stacked
+    t0 = time.process_time()
+    p0 = reqs[0]["params"]
+    amb = p0.ambient_pressure / BAR
+    cols_l = [_inputs(r["rows"], r.get("p_m_sp"), amb) for r in reqs]
+    sizes = [len(r["rows"]) for r in reqs]
+    ends = np.cumsum(sizes)
+    starts = ends - np.asarray(sizes)
+    n = int(ends[-1]) if len(ends) else 0
+    cols = {c: np.concatenate([x[c] for x in cols_l]) for c in cols_l[0]}
+    pairs, member = [], []
+    for r in reqs:                             # one stacked member per distinct compressor pair
+        key = (id(r["params"].comp_LS), id(r["params"].comp_HS))
+        ids = [(id(a.comp_LS), id(a.comp_HS)) for a in pairs]
+        if key not in ids:
+            pairs.append(r["params"])
+            ids.append(key)
+        member.append(ids.index(key))
+    group = np.repeat(np.asarray(member, dtype=np.intp), sizes)
+    comps = (Stacked([p.comp_LS for p in pairs]), Stacked([p.comp_HS for p in pairs]))
+
+    def per_row(f):
+        return np.concatenate([np.broadcast_to(np.asarray(f(r, m), dtype=float), (m,))
+                               for r, m in zip(reqs, sizes)])
+
+    R = per_row(lambda r, m: r["params"].R_th_f if r.get("R_th_f") is None else r["R_th_f"])
+    cf = np.stack([per_row(lambda r, m, k=k: getattr(r["params"], k) * (np.ones(m) if r.get("cond_factor") is None
+                                                                       else r["cond_factor"]))
+                   for k in ("CF_DSH", "CF_con", "CF_SC")])
+    cf_dp = per_row(lambda r, m: r["params"].CF_dp_f)
+    keys = sorted({k for r in reqs for k in (r.get("deltas") or {})})
+    deltas = {k: np.concatenate([(r.get("deltas") or {}).get(k, np.zeros((m, 6))) for r, m in zip(reqs, sizes)])
+              for k in keys}
+    parts = [(int(a), int(b), None if r.get("guess") is None else (r["guess"].state, r["gi"]))
+             for r, a, b in zip(reqs, starts, ends)]
+
+    def row_params(i):
+        j = int(np.searchsorted(ends, i, side="right"))
+        r = reqs[j]
+        return _row_params(r["params"], r.get("R_th_f"), r.get("cond_factor"), i - int(starts[j]),
+                           r.get("deltas") or None)
+
+    with np.errstate(all="ignore"):
+        v = _solve_core(t0, cols, n, p0, reqs[0]["ls_mode"], None, R, None, deltas, parts, comps, row_params,
+                        group, cf, cf_dp)
+    return [take_rows(v, np.arange(a, b)) for a, b in zip(starts, ends)]
+
+
+def take_rows(v: VResult, idx: np.ndarray) -> VResult:
+    """The rows ``idx`` of a VResult (every per-row array sliced)."""
+    m = len(v)
+    kw = {}
+    for f in dataclasses.fields(v):
+        val = getattr(v, f.name)
+        if isinstance(val, np.ndarray) and val.shape[:1] == (m,):
+            val = val[idx]
+        elif isinstance(val, dict):
+            val = {a: (b[idx] if isinstance(b, np.ndarray) and b.shape[:1] == (m,) else b)
+                   for a, b in val.items()}
+        kw[f.name] = val
+    return type(v)(**kw)
 
 
 def _row_params(params: PlantParams, R_th_f, cond, i: int, deltas: dict | None = None) -> PlantParams:
@@ -302,9 +401,22 @@ def _row_params(params: PlantParams, R_th_f, cond, i: int, deltas: dict | None =
 def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, cond,
                 deltas=None) -> VResult:
     t0 = time.process_time()
-    amb_bar = params.ambient_pressure / BAR
-    cols = _inputs(rows, p_m_sp, amb_bar)
+    cols = _inputs(rows, p_m_sp, params.ambient_pressure / BAR)
     n = len(rows)
+    return _solve_core(t0, cols, n, params, ls_mode, force_scalar, R_th_f, cond, deltas,
+                       [(0, n, None if guess is None else (guess.state, gi))],
+                       (vectorized(params.comp_LS), vectorized(params.comp_HS)),
+                       lambda i: _row_params(params, R_th_f, cond, i, deltas))
+
+
+def _solve_core(t0, cols, n, params, ls_mode, force_scalar, R_th_f, cond, deltas, parts, comps,
+                row_params, group=None, cf=None, cf_dp=None) -> VResult:
+    """``_solve_many`` on inputs ``cols`` (SI conversion here) of n rows: ``parts`` (start, end,
+    warm) the row ranges of the calls answered together (warm: (guess state, guess_index) or None),
+    ``comps`` the flowsheet's (LS, HS) compressors, ``row_params(i)`` row i's parameters for the
+    scalar path; ``group``/``cf``/``cf_dp``: per row, the stacked compressors' member, the condenser
+    unit's (CF_DSH, CF_con, CF_SC) and CF_dp,f (``solve_merged``)."""
+    amb_bar = params.ambient_pressure / BAR
     fluid = get_fluid(params.fluid, params.backend)
     tab = get_cycle_tables(params.fluid)
     status = np.full(n, "", dtype=object)
@@ -320,8 +432,8 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
     T_ki = C_to_K(z(cols["T_sink_in"]))
     V_s, V_k = m3h_to_m3s(z(cols["V_source"])), m3h_to_m3s(z(cols["V_sink"]))
     p_sp = barg_to_Pa(z(cols["p_m_sp"]), amb_bar)
-    fs = Flowsheet(params, tab, vectorized(params.comp_LS), vectorized(params.comp_HS), T_si, T_so, T_ki, V_s, V_k,
-                   R_th_f, cond, deltas)
+    fs = Flowsheet(params, tab, comps[0], comps[1], T_si, T_so, T_ki, V_s, V_k, R_th_f, cond, deltas, group, cf,
+                   cf_dp)
     _precheck(fs, fluid, p_sp, status, reason, fallback)
     if force_scalar is not None:
         fallback |= (status == "") & np.asarray(force_scalar, dtype=bool)
@@ -348,27 +460,39 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
             return on_done(r)
 
         tasks = []
-        if guess is not None:
+        if any(w is not None for _, _, w in parts):
             cand = np.zeros(n, dtype=bool)
             cand[todo] = True
-            g = take_state(guess.state, gi)
-            inputs = dict(T_si=T_si, T_so_in=T_so, T_ki=T_ki, V_s=V_s, V_k=V_k)
-            lost = cand & (gi >= 0) & ~usable(g, ls_mode)
-            if lost.any():
-                gi = borrow(guess.state, gi, lost, inputs, T_m_sp, ls_mode)
-                g = take_state(guess.state, gi)
-            plan = WarmPlan(n, cand, g, ls_mode, lost)
+            gs, losts = [], []
+            for a, b, w in parts:             # each call's rows from its own guess
+                if w is None:
+                    gs.append(empty_state(b - a))
+                    losts.append(np.zeros(b - a, dtype=bool))
+                    continue
+                st, gi = w
+                g = take_state(st, gi)
+                inputs = dict(T_si=T_si[a:b], T_so_in=T_so[a:b], T_ki=T_ki[a:b], V_s=V_s[a:b], V_k=V_k[a:b])
+                lost = cand[a:b] & (gi >= 0) & ~usable(g, ls_mode)
+                if lost.any():
+                    gi = borrow(st, gi, lost, inputs, T_m_sp[a:b], ls_mode)
+                    g = take_state(st, gi)
+                gs.append(g)
+                losts.append(lost)
+            g = gs[0] if len(gs) == 1 else {k: np.concatenate([x[k] for x in gs]) for k in gs[0]}
+            plan = WarmPlan(n, cand, g, ls_mode, losts[0] if len(losts) == 1 else np.concatenate(losts))
             if len(plan.rows):
                 fs.append(plan.extra)
                 _seed_memory(fs, plan, g)
                 ws = WarmSolve(fs, plan, g, T_m_sp, p_sp, T_c_max, ls_mode)
                 tasks.append(ws.task(go_cold))
             todo = np.setdiff1d(todo, plan.rows)
-            if len(todo) <= SCALAR_COLD_MAX:
-                # a few rows without a guess: the scalar solver (the vector cold path costs its
-                # rounds, 5-60, whatever its rows)
-                fallback[todo] = True
-                todo = todo[:0]
+            for a, b, w in parts:
+                mine = (todo >= a) & (todo < b)
+                if w is not None and np.count_nonzero(mine) <= SCALAR_COLD_MAX:
+                    # a few rows of a call with a guess but none themselves: the scalar solver (the
+                    # vector cold path costs its rounds, 5-60, whatever its rows)
+                    fallback[todo[mine]] = True
+                    todo = todo[~mine]
         if len(todo):
             tasks.append(go_cold(todo))
         run(*tasks)
@@ -409,8 +533,7 @@ def _solve_many(rows, params, p_m_sp, ls_mode, force_scalar, guess, gi, R_th_f, 
         branch[dst[named]] = np.array(["sp", "hs_max", "hs_min"], dtype=object)[br[named]]
     t3 = time.process_time()
     for i in np.flatnonzero(fallback):
-        branch[i] = _scalar_row(i, cols, _row_params(params, R_th_f, cond, i, deltas), fluid, ls_mode, amb_bar,
-                                values, status, reason, state)
+        branch[i] = _scalar_row(i, cols, row_params(i), fluid, ls_mode, amb_bar, values, status, reason, state)
     status[(status == "")] = "ok"
     timings = {"solve_s": t1 - t0, "assemble_s": t3 - t2, "fallback_s": time.process_time() - t3,
                "warm_rounds": ws.rounds if ws is not None else 0}
@@ -496,8 +619,14 @@ def _assemble(fs: Flowsheet, rows, dst, T_m, T_c, hs_sat, ls_sat, flag, flag_msg
     fallback[dst[bad]] = True                 # not expected: the path solved these points
     m_LS, m_HS = s["m_LS"], s["m_HS"]
     h1, h2, h4, h_g_m = fs.h1[rows], s["h2"], s["h4"], s["h_g_m"]
-    W_LS = m_LS * (h2 - h1) * ls_c.drive_factor
-    W_HS = m_HS * (h4 - h_g_m) * hs_c.drive_factor
+    if hasattr(fs.ls, "view"):                  # stacked: each row its own compressors' factors
+        g = fs.group[rows]
+        d_LS, d_HS = fs.ls.drive[g], fs.hs.drive[g]
+    else:
+        d_LS, d_HS = ls_c.drive_factor, hs_c.drive_factor
+    W_LS = m_LS * (h2 - h1) * d_LS
+    W_HS = m_HS * (h4 - h_g_m) * d_HS
+    cf_dp = fs.cf_dp[rows]
     Q_source = fs.Q_s[rows]
     Q_sink = s["Q_SC"] + s["Q_con"] + s["Q_DSH"]
     C_w = fs.C_w[rows]
@@ -518,7 +647,7 @@ def _assemble(fs: Flowsheet, rows, dst, T_m, T_c, hs_sat, ls_sat, flag, flag_msg
         "W_total_kW": W_total / 1e3, "COP": Q_sink / W_total, "T_sink_out_C": K_to_C(T_sink_out),
         "eta_is_LS": s["eta_LS"], "eta_is_HS": s["eta_HS"], "eta_vol_LS": s["ev_LS"],
         "eta_vol_HS": s["ev_HS"], "m_LS_kg_s": m_LS, "m_HS_kg_s": m_HS, "subcooling_K": T_c - T_SC_out,
-        "pinch_K": pinch, "dp_source_bar": par.CF_dp_f * par.dp_clean(fs.V_s[rows]) / BAR,
+        "pinch_K": pinch, "dp_source_bar": cf_dp * par.dp_clean(fs.V_s[rows]) / BAR,
         "T_dis_LS_C": K_to_C(T_m + th2), "T_dis_HS_C": K_to_C(T4),
         "energy_residual": (Q_source + W_shaft - Q_sink) / Q_sink,
         "hs_saturated": hs_sat, "T_source_out_C": K_to_C(fs.T_so[rows]),

@@ -106,10 +106,13 @@ class Flowsheet:
     """
 
     def __init__(self, params: PlantParams, tab: CycleTables, comp_LS, comp_HS,
-                 T_si, T_so, T_ki, V_s, V_k, R_th_f=None, cond=None, deltas=None) -> None:
+                 T_si, T_so, T_ki, V_s, V_k, R_th_f=None, cond=None, deltas=None, group=None,
+                 cf=None, cf_dp=None) -> None:
         self.par, self.tab, self.ls, self.hs = params, tab, comp_LS, comp_HS
         n = len(T_si)
         self.n = n
+        # per row: which of a stacked compressor's members answers it (``model.lockstep``)
+        self.group = np.zeros(n, dtype=np.intp) if group is None else np.asarray(group, dtype=np.intp)
         self.T_si, self.T_ki, self.V_s, self.V_k = T_si, T_ki, V_s, V_k
         self.R_th_f, self.cond = R_th_f, cond
         # per-row differences to the learned curves (uncertainty draws): {DELTA_KEY: (n, 6) array}
@@ -122,9 +125,13 @@ class Flowsheet:
         else:
             self.UA_eva = 1.0 / (1.0 / params.UA_eva_clean + np.asarray(R_th_f, dtype=float))
         k = np.ones(n) if cond is None else np.asarray(cond, dtype=float)
-        self.UA_DSH = (params.CF_DSH * k) * params.U_DSH * params.A_DSH
-        self.UA_con = (params.CF_con * k) * params.U_con * params.A_con
-        self.UA_SC = (params.CF_SC * k) * params.U_SC * params.A_SC
+        # cf: per row (CF_DSH, CF_con, CF_SC) in place of params' times cond (rows of several calls)
+        self.cf = None if cf is None else np.asarray(cf, dtype=float)
+        CF = ((params.CF_DSH * k), (params.CF_con * k), (params.CF_SC * k)) if cf is None else self.cf
+        self.UA_DSH = CF[0] * params.U_DSH * params.A_DSH
+        self.UA_con = CF[1] * params.U_con * params.A_con
+        self.UA_SC = CF[2] * params.U_SC * params.A_SC
+        self.cf_dp = np.full(n, params.CF_dp_f) if cf_dp is None else np.asarray(cf_dp, dtype=float)
         with np.errstate(all="ignore"):
             self.eps_con = 1.0 - np.exp(-self.UA_con / self.C_w)
         self.T_so = np.array(T_so, dtype=float)
@@ -158,7 +165,7 @@ class Flowsheet:
 
     ROW_ARRAYS = ("T_si", "T_ki", "V_s", "V_k", "C_s", "C_w", "UA_eva", "UA_DSH", "UA_con", "UA_SC", "eps_con",
                   "T_so", "Q_s", "T_e", "p_e", "h_g_e", "h1", "s1", "rho1", "src_ok", "n_LS", "n_HS", "d_SC",
-                  "phi_HS", "dT_SC")
+                  "phi_HS", "dT_SC", "group", "cf_dp")
 
     def append(self, sel) -> np.ndarray:
         """Append copies of the rows ``sel`` (their inputs, parameters, source state and memory);
@@ -173,6 +180,8 @@ class Flowsheet:
                 a = np.asarray(a, dtype=float)
                 setattr(self, name, np.concatenate([a, a[sel]]))
         self.deltas = {k: np.concatenate([a, a[sel]]) for k, a in self.deltas.items()}
+        if self.cf is not None:
+            self.cf = np.concatenate([self.cf, self.cf[:, sel]], axis=1)
         new = self.n + np.arange(len(sel))
         self.n += len(sel)
         return new
@@ -183,13 +192,18 @@ class Flowsheet:
         pick = lambda a: None if a is None else np.asarray(a, dtype=float)[sel]   # noqa: E731
         return Flowsheet(self.par, self.tab, self.ls, self.hs, self.T_si[sel], self.T_so[sel],
                          self.T_ki[sel], self.V_s[sel], self.V_k[sel], pick(self.R_th_f), pick(self.cond),
-                         {k: a[sel] for k, a in self.deltas.items()})
+                         {k: a[sel] for k, a in self.deltas.items()}, self.group[sel],
+                         None if self.cf is None else self.cf[:, sel], self.cf_dp[sel])
 
     def comp(self, stage: str, idx):
         """The stage's compressor for the rows idx: with per-row curve differences (``deltas``) a
         ``LearnedCompressor`` whose ``delta_is``/``delta_vol`` hold those rows' coefficients (a
         transient object for one vectorised call); else the flowsheet's own."""
         base = self.ls if stage == "LS" else self.hs
+        if hasattr(base, "view"):           # a stage's compressors of several windows (stacked)
+            d = {c: (tuple(self.deltas[f"{stage}_{c}"][idx].T) if f"{stage}_{c}" in self.deltas else None)
+                 for c in ("is", "vol")}
+            return base.view(self.group[idx], d["is"], d["vol"])
         if not self.deltas:
             return base
         kw = {}
@@ -332,6 +346,8 @@ class Flowsheet:
             d = np.where((d > 0.0) & (d < dT) & (d <= LIQ_D_MAX), d, 0.5 * np.minimum(dT, LIQ_D_MAX))
             d = np.where(d == d, d, 1.0)
         d_hi = np.minimum(dT, LIQ_D_MAX)
+        k = len(d)
+        C_w2, UA2 = np.concatenate([C_w, C_w]), np.concatenate([UA, UA])
         for _ in range(SC_ITER):
             h, h_T = tab.liq_raw(row, d)
             g = h_g_m - h
@@ -339,9 +355,10 @@ class Flowsheet:
             dq = h_f_c - h
             cp = dq / d
             C = m * cp
-            eps, C_min = counterflow_eps_v(C, C_w, UA)
+            # the capacity and its finite-difference step in one call (the same numbers as two)
+            eps_b, C_min_b = counterflow_eps_v(np.concatenate([C, C * (1.0 + 1e-7)]), C_w2, UA2)
+            eps, C_min, eps2, C_min2 = eps_b[:k], C_min_b[:k], eps_b[k:], C_min_b[k:]
             Q_e = eps * C_min * dT
-            eps2, C_min2 = counterflow_eps_v(C * (1.0 + 1e-7), C_w, UA)
             dQ_dC = (eps2 * C_min2 * dT - Q_e) / (C * 1e-7)
             dm = -m * h_T / g                                 # dh/dd = -h_T
             step = (m * dq - Q_e) / (dm * dq + m * h_T - dQ_dC * (dm * cp + m * (h_T - cp) / d))

@@ -49,7 +49,6 @@ DAY_S = 86400.0
 _Z = (2.5, 1.0, 1.0, 0.3)        # internal scaling: z_pi = (pi - 2.5)/1.0, z_n = (n - 1)/0.3
 SPEED_STEP_TOL = 1e-9          # the learned curves' speed search ends with a Newton step below this: the
                                # error after it is ~ the step squared (a further step would be < 1e-17)
-_NODE_PAIR = np.array([0, 1])    # a cell's two node columns (LocalCurves.value_dn_rows)
 
 
 class LearningError(ValueError):
@@ -665,7 +664,42 @@ class LocalCurves:
         return out
 
     def value_v(self, pi, n) -> tuple[np.ndarray, np.ndarray]:
-        """``value`` for arrays: (values, inside); NaN where ``value`` is None."""
+        """``value`` for arrays: (values, inside); NaN where ``value`` is None. The same operations
+        as ``_cell_v`` and ``_corners_v``, with the four corners gathered in one step."""
+        if not self.ok:
+            return self._value_v(pi, n)
+        if "_ca" not in self.__dict__:
+            self._cell_v(self.p0, self.n0)
+        pi = np.asarray(pi, dtype=float)
+        n = np.asarray(n, dtype=float)
+        if pi.shape != n.shape:
+            pi, n = np.broadcast_arrays(pi, n)
+        fin = np.isfinite(pi) & np.isfinite(n)
+        all_fin = fin.all()
+        x = ((pi if all_fin else np.where(fin, pi, self.p0)) - self.p0) / self.dpi
+        y = ((n if all_fin else np.where(fin, n, self.n0)) - self.n0) / self.dn
+        i, j = np.floor(x), np.floor(y)
+        fx, fy = x - i, y - j
+        inside = (i >= 0) & (i < self._ni) & (j >= 0) & (j < self._nj)
+        if not all_fin:
+            inside &= fin
+        every = inside.all()
+        ii = (i if every else np.where(inside, i, 0)).astype(np.intp)
+        jj = (j if every else np.where(inside, j, 0)).astype(np.intp)
+        zp, zn = (pi - _Z[0]) / _Z[1], (n - _Z[2]) / _Z[3]
+        c = self._ca
+        stride = c.shape[1]
+        corner = np.array([0, stride, 1, stride + 1])       # (0, 0), (1, 0), (0, 1), (1, 1)
+        k = c.reshape(-1, 6)[(ii * stride + jj)[:, None] + corner]          # (rows, 4, 6)
+        zp1, zn1 = zp[:, None], zn[:, None]
+        v = (k[:, :, 0] + k[:, :, 1] * zp1 + k[:, :, 2] * zn1 + k[:, :, 3] * (zp * zp)[:, None]
+             + k[:, :, 4] * (zp * zn)[:, None] + k[:, :, 5] * (zn * zn)[:, None])
+        val = ((1 - fy) * ((1 - fx) * v[:, 0] + fx * v[:, 1])) + (fy * ((1 - fx) * v[:, 2] + fx * v[:, 3]))
+        if every:
+            return val, inside
+        return np.where(inside, val, np.nan), inside
+
+    def _value_v(self, pi, n) -> tuple[np.ndarray, np.ndarray]:
         inside, ii, jj, fx, fy, zp, zn = self._cell_v(pi, n)
         v = self._corners_v(ii, jj, zp, zn, False)
         val = ((1 - fy) * ((1 - fx) * v[0] + fx * v[1])) + (fy * ((1 - fx) * v[2] + fx * v[3]))
@@ -688,37 +722,60 @@ class LocalCurves:
         polynomial at that pi, blended across the pi cell, as a quadratic in z_n (rows, columns, 3),
         and whether pi lies inside the grid. ``value_dn_rows`` then evaluates ``value_dn_v`` at any n
         with a third of the work (the pi part is done once per search, not once per step)."""
-        inside, ii, _, fx, _, zp, _ = self._cell_v(pi, np.full(np.shape(pi), self.n0))
+        if not self.ok:
+            inside, ii, _, fx, _, zp, _ = self._cell_v(pi, np.full(np.shape(pi), self.n0))
+        else:
+            # ``_cell_v``'s pi part alone (its n part at n0 is inside whenever the grid has a cell)
+            if "_ca" not in self.__dict__:
+                self._cell_v(self.p0, self.n0)
+            pi = np.asarray(pi, dtype=float)
+            fin = np.isfinite(pi)
+            x = ((pi if fin.all() else np.where(fin, pi, self.p0)) - self.p0) / self.dpi
+            i = np.floor(x)
+            inside = fin & (i >= 0) & (i < self._ni) & (self._nj > 0)
+            ii = np.where(inside, i, 0).astype(np.intp)
+            fx = x - i
+            zp = (pi - _Z[0]) / _Z[1]
         c = self._ca
-        q = []
-        for di in (0, 1):
-            k = c[ii + di]                                      # (rows, columns, 6)
-            q.append(np.stack([k[:, :, 0] + k[:, :, 1] * zp[:, None] + k[:, :, 3] * (zp * zp)[:, None],
-                               k[:, :, 2] + k[:, :, 4] * zp[:, None], k[:, :, 5]], axis=2))
-        f = fx[:, None, None]
-        return (1.0 - f) * q[0] + f * q[1], inside & self.ok
+        zp1, zp2 = zp[:, None], (zp * zp)[:, None]
+        f = fx[:, None]
+        out = np.empty((len(ii), c.shape[1], 3))
+        k0, k1 = c[ii], c[ii + 1]                               # (rows, columns, 6)
+        # the same operations as blending the two stacked quadratics, written into one array
+        out[:, :, 0] = (1.0 - f) * (k0[:, :, 0] + k0[:, :, 1] * zp1 + k0[:, :, 3] * zp2) \
+            + f * (k1[:, :, 0] + k1[:, :, 1] * zp1 + k1[:, :, 3] * zp2)
+        out[:, :, 1] = (1.0 - f) * (k0[:, :, 2] + k0[:, :, 4] * zp1) + f * (k1[:, :, 2] + k1[:, :, 4] * zp1)
+        out[:, :, 2] = (1.0 - f) * k0[:, :, 5] + f * k1[:, :, 5]
+        return out, inside & self.ok
 
     def value_dn_rows(self, Q: np.ndarray, inside_pi: np.ndarray, rows: np.ndarray, n, left=None):
         """``value_dn_v`` at (pi of ``rows_at``, n) for the rows ``rows`` of ``Q``: (values, d/dn,
         inside); the same numbers to round-off."""
         n = np.asarray(n, dtype=float)
         fin = np.isfinite(n)
-        y = (np.where(fin, n, self.n0) - self.n0) / self.dn
+        all_fin = fin.all()
+        y = ((n if all_fin else np.where(fin, n, self.n0)) - self.n0) / self.dn
         j = np.floor(y)
         fy = y - j
         if left is not None:
             shift = left & (fy == 0.0) & (j > 0)
-            j, fy = np.where(shift, j - 1, j), np.where(shift, 1.0, fy)
-        inside = inside_pi[rows] & fin & (j >= 0) & (j < self._nj)
-        jj = np.where(inside, j, 0).astype(np.intp)
-        zn = ((n - _Z[2]) / _Z[3])[:, None]
-        ab = Q[rows[:, None], jj[:, None] + _NODE_PAIR]       # (rows, 2 node columns, 3)
-        c0, c1, c2 = ab[:, :, 0], ab[:, :, 1], ab[:, :, 2]
-        v = c0 + (c1 + c2 * zn) * zn
-        dv = c1 + 2.0 * c2 * zn
-        va, vb = v[:, 0], v[:, 1]
+            if shift.any():
+                j, fy = np.where(shift, j - 1, j), np.where(shift, 1.0, fy)
+        inside = inside_pi[rows] & (j >= 0) & (j < self._nj)
+        if not all_fin:
+            inside &= fin
+        every = inside.all()
+        jj = (j if every else np.where(inside, j, 0)).astype(np.intp)
+        zn = (n - _Z[2]) / _Z[3]
+        a, b = Q[rows, jj], Q[rows, jj + 1]                    # the cell's two node columns (rows, 3)
+        va = a[:, 0] + (a[:, 1] + a[:, 2] * zn) * zn
+        vb = b[:, 0] + (b[:, 1] + b[:, 2] * zn) * zn
+        da = a[:, 1] + 2.0 * a[:, 2] * zn
+        db = b[:, 1] + 2.0 * b[:, 2] * zn
         val = (1 - fy) * va + fy * vb
-        d = (vb - va) / self.dn + ((1 - fy) * dv[:, 0] + fy * dv[:, 1]) / _Z[3]
+        d = (vb - va) / self.dn + ((1 - fy) * da + fy * db) / _Z[3]
+        if every:
+            return val, d, inside
         nan = np.nan
         return np.where(inside, val, nan), np.where(inside, d, nan), inside
 
@@ -815,72 +872,11 @@ class LearnedCompressor(Compressor):
         rows where the scalar method raises ValueError)."""
         if self.local_vol is None or not self.local_vol.ok:
             return Compressor.speed_for_flow_v(self, m, rho_suc, pi, n0)
-        m, rho_suc, pi = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (m, rho_suc, pi)))
-        target = m / (rho_suc * self.swept_volume)
-        n_lo, n_hi = self.N_min / self.N_nom, self.N_max / self.N_nom
-
-        loc = self.local_vol
-        Q, in_pi = loc.rows_at(pi)
-        c = self.eta_vol
-        dl = self.delta_vol
-        rowwise = dl is not None and np.ndim(dl[0]) > 0     # per-row draws (Flowsheet.comp)
-        zp_all = (pi - _Z[0]) / _Z[1]
-
-        def phi(rows, nn):
-            """(eta_vol * n, d/dn) of rows ``rows`` at speed ratios nn (``_vol_dn_v``'s numbers)."""
-            p = pi[rows]
-            v, d, inside = loc.value_dn_rows(Q, in_pi, rows, nn, nn >= n_hi)
-            v = np.where(inside, v, c[0] + c[1] * p + c[2] * nn + c[3] * p * p + c[4] * p * nn
-                         + c[5] * nn * nn)
-            d = np.where(inside, d, c[2] + c[4] * p + 2.0 * c[5] * nn)
-            if dl is not None:
-                a = [x[rows] for x in dl] if rowwise else dl
-                zp = zp_all[rows]
-                zn = (nn - _Z[2]) / _Z[3]
-                v = v + (a[0] + a[1] * zp + a[2] * zn + a[3] * zp * zp + a[4] * zp * zn
-                         + a[5] * zn * zn)
-                d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
-            return v * nn, v + nn * d
-
-        m_rows = len(target)
-        every = np.arange(m_rows)
-        n = np.clip(np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float), n_lo, n_hi)
-        n = np.where(np.isfinite(n), n, 1.0)
-        # both ends and the first Newton point in one call (row by row the same numbers as three)
-        f_b, d_b = phi(np.concatenate([every, every, every]),
-                       np.concatenate([np.full_like(target, n_lo), np.full_like(target, n_hi), n]))
-        f_lo, f_hi, f_0 = f_b[:m_rows], f_b[m_rows:2 * m_rows], f_b[2 * m_rows:]
-        d_lo, d_hi, d_0 = d_b[:m_rows], d_b[m_rows:2 * m_rows], d_b[2 * m_rows:]
-        bad = ~((d_lo > 0.0) & (d_hi > 0.0)) | ~np.isfinite(target)   # NaN inputs: NaN out, unbisected
-        above, below = target > f_hi, target < f_lo
-        with np.errstate(divide="ignore", invalid="ignore"):
-            n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
-            bad |= below & ~above & ~(n_out > 0.0)
-        a, b = np.full_like(target, n_lo), np.full_like(target, n_hi)
-        act = np.flatnonzero(~(above | below | bad))
-        first = True
-        for _ in range(60):
-            if not len(act):
-                break
-            na = n[act]
-            if first:
-                f, df, first = f_0[act], d_0[act], False
-            else:
-                f, df = phi(act, na)
-            hi = f > target[act]
-            b[act] = np.where(hi, na, b[act])
-            a[act] = np.where(hi, a[act], na)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = np.where(df > 0, (f - target[act]) / df, 0.0)
-            nn = na - step
-            aa, bb = a[act], b[act]
-            nn = np.where((aa <= nn) & (nn <= bb), nn, 0.5 * (aa + bb))
-            n[act] = nn
-            act = act[~(np.abs(nn - na) < SPEED_STEP_TOL)]
-        n = np.where(above | below, n_out, n)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ev = target / n
-        return np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
+        m, rho_suc, pi = (np.asarray(x, dtype=float) for x in (m, rho_suc, pi))
+        if not (m.shape == rho_suc.shape == pi.shape):
+            m, rho_suc, pi = np.broadcast_arrays(m, rho_suc, pi)
+        return local_speed(self.local_vol, self.eta_vol, self.delta_vol, m / (rho_suc * self.swept_volume),
+                           pi, n0, self.N_min / self.N_nom, self.N_max / self.N_nom)
 
     def speed_for_flow(self, m: float, rho_suc: float, pi: float, n0: float = 1.0) -> tuple[float, float]:
         """As Compressor.speed_for_flow (same contract), by safeguarded Newton with the analytic
@@ -1286,3 +1282,79 @@ def _params_stub(prior: dict):
 def with_settings(learner: CompressorLearner, **kw) -> CompressorLearner:
     return CompressorLearner.from_dict(learner.to_dict(), _params_stub(learner.prior),
                                        replace(learner.s, **kw))
+
+
+def local_speed(loc, c, dl, target, pi, n0, n_lo: float, n_hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """The learned curves' speed search (``LearnedCompressor.speed_for_flow_v``) for the targets
+    eta_vol * n = ``target`` at pressure ratios ``pi``: ``loc`` answers ``rows_at`` and
+    ``value_dn_rows`` (a ``LocalCurves``, or ``model.analysis.stacked``'s tables of several
+    compressors), ``c`` the global curve's six coefficients (scalars, or one array per row each),
+    ``dl`` the curve differences (None, six scalars or six arrays per row). Safeguarded Newton on
+    phi(n) = eta_vol(pi, n) n, continued linearly beyond the speed bounds; NaN rows where the
+    scalar method raises."""
+    Q, in_pi = loc.rows_at(pi)
+    c_rows = np.ndim(c[0]) > 0                          # one global curve per row (stacked)
+    rowwise = dl is not None and np.ndim(dl[0]) > 0     # per-row draws (Flowsheet.comp)
+    zp_all = (pi - _Z[0]) / _Z[1]
+
+    def phi(rows, nn):
+        """(eta_vol * n, d/dn) of rows ``rows`` at speed ratios nn (``_vol_dn_v``'s numbers)."""
+        v, d, inside = loc.value_dn_rows(Q, in_pi, rows, nn, nn >= n_hi)
+        if not inside.all():
+            p = pi[rows]
+            k = [x[rows] for x in c] if c_rows else c
+            v = np.where(inside, v, k[0] + k[1] * p + k[2] * nn + k[3] * p * p + k[4] * p * nn
+                         + k[5] * nn * nn)
+            d = np.where(inside, d, k[2] + k[4] * p + 2.0 * k[5] * nn)
+        if dl is not None:
+            a = [x[rows] for x in dl] if rowwise else dl
+            zp = zp_all[rows]
+            zn = (nn - _Z[2]) / _Z[3]
+            v = v + (a[0] + a[1] * zp + a[2] * zn + a[3] * zp * zp + a[4] * zp * zn
+                     + a[5] * zn * zn)
+            d = d + (a[2] + a[4] * zp + 2.0 * a[5] * zn) / _Z[3]
+        return v * nn, v + nn * d
+
+    m_rows = len(target)
+    every = np.arange(m_rows)
+    n = np.ones_like(target) if n0 is None else np.asarray(n0, dtype=float)
+    n = np.minimum(np.maximum(n, n_lo), n_hi)                # np.clip's numbers, NaN kept
+    fin = np.isfinite(n)
+    if not fin.all():
+        n = np.where(fin, n, 1.0)
+    # both ends and the first Newton point in one call (row by row the same numbers as three)
+    f_b, d_b = phi(np.concatenate([every, every, every]),
+                   np.concatenate([np.full_like(target, n_lo), np.full_like(target, n_hi), n]))
+    f_lo, f_hi, f_0 = f_b[:m_rows], f_b[m_rows:2 * m_rows], f_b[2 * m_rows:]
+    d_lo, d_hi, d_0 = d_b[:m_rows], d_b[m_rows:2 * m_rows], d_b[2 * m_rows:]
+    bad = ~((d_lo > 0.0) & (d_hi > 0.0)) | ~np.isfinite(target)   # NaN inputs: NaN out, unbisected
+    above, below = target > f_hi, target < f_lo
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n_out = np.where(above, n_hi + (target - f_hi) / d_hi, n_lo + (target - f_lo) / d_lo)
+        bad |= below & ~above & ~(n_out > 0.0)
+    a, b = np.full_like(target, n_lo), np.full_like(target, n_hi)
+    act = np.flatnonzero(~(above | below | bad))
+    first = True
+    for _ in range(60):
+        if not len(act):
+            break
+        na = n[act]
+        if first:
+            f, df, first = f_0[act], d_0[act], False
+        else:
+            f, df = phi(act, na)
+        hi = f > target[act]
+        b[act] = np.where(hi, na, b[act])
+        a[act] = np.where(hi, a[act], na)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(df > 0, (f - target[act]) / df, 0.0)
+        nn = na - step
+        aa, bb = a[act], b[act]
+        nn = np.where((aa <= nn) & (nn <= bb), nn, 0.5 * (aa + bb))
+        n[act] = nn
+        act = act[~(np.abs(nn - na) < SPEED_STEP_TOL)]
+    n = np.where(above | below, n_out, n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ev = target / n
+    return np.where(bad, np.nan, n), np.where(bad, np.nan, ev)
+

@@ -34,6 +34,7 @@ import pandas as pd
 from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_from_config
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import process, usable_counts
+from .. import lockstep
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
 from .compressors import STAGES, CompressorLearner, observe
@@ -504,28 +505,68 @@ def _analyse_pickled(chain_blob: bytes, task_blob: bytes) -> WindowPartial:
     return chain.analyse(pickle.loads(task_blob))
 
 
+def _analyse_chunk(chain: AnalysisChain, task_blobs: list) -> list:
+    """Pass 2 of consecutive windows (their pickled tasks) in lockstep (``model.lockstep``): their
+    solver calls answered together. A window whose analysis raises raises here, as alone."""
+    tasks = [pickle.loads(b) for b in task_blobs]
+    if len(tasks) == 1:
+        return [chain.analyse(tasks[0])]
+    out = lockstep.run([(lambda t=t: chain.analyse(t)) for t in tasks])
+    for r in out:
+        if isinstance(r, lockstep.Failed):
+            raise r.exc
+    return out
+
+
+def _analyse_chunk_pickled(chain_blob: bytes, task_blobs: list) -> list:
+    """``_analyse_chunk`` in whichever process the executor chose."""
+    return _analyse_chunk(pickle.loads(chain_blob), task_blobs)
+
+
 MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
+LOCKSTEP_WINDOWS = 16      # consecutive windows analysed in lockstep (one solver call per step of all)
 
 
-def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None):
+def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None,
+                lockstep_windows: int | None = None):
     """Yield each task's ``chain.analyse(task)`` in the tasks' order.
 
-    Without an executor the tasks are analysed here, one by one, as they come (pass 1 of a window
-    runs only after pass 3 of the one before: the gateway's order). With one, each task is pickled
-    the moment pass 1 has produced it (a snapshot: pass 1 goes on to change the learner for the next
-    window) and submitted; at most ``max_pending`` (default MAX_PENDING) are in flight. Pass 2
-    depends on nothing but its task, so the results equal the sequential ones."""
-    if executor is None:
+    The tasks are taken in chunks of ``lockstep_windows`` (default LOCKSTEP_WINDOWS) consecutive
+    windows whose pass 2 runs in lockstep (``model.lockstep``: each solver step of the chunk's
+    windows in one call of the vectorised solver). Each task is pickled the moment pass 1 has
+    produced it (a snapshot: pass 1 goes on to change the learner for the next window). The chunks
+    are the same whatever runs them, so the results are too: without an executor the chunks are
+    analysed here, one after the other; with one, each chunk is submitted as soon as it is complete,
+    at most ``max_pending`` (default MAX_PENDING) windows' worth in flight (at least two chunks).
+    With ``lockstep_windows`` 1 and no executor, each window is analysed right after its pass 1
+    (the gateway's order, no pickling). Pass 2 depends on nothing but its task."""
+    k = max(1, int(lockstep_windows or LOCKSTEP_WINDOWS))
+    if executor is None and k == 1:
         for t in tasks:
             yield chain.analyse(t)
         return
+
+    def chunks():
+        blobs = []
+        for t in tasks:
+            blobs.append(pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL))
+            if len(blobs) == k:
+                yield blobs
+                blobs = []
+        if blobs:
+            yield blobs
+
+    if executor is None:
+        for blobs in chunks():
+            yield from _analyse_chunk(chain, blobs)
+        return
     chain_blob = pickle.dumps(chain, protocol=pickle.HIGHEST_PROTOCOL)
-    max_pending = max(1, int(max_pending or MAX_PENDING))
+    max_chunks = max(2, int(max_pending or MAX_PENDING) // k)
     pending: deque = deque()
-    for t in tasks:
-        pending.append(executor.submit(_analyse_pickled, chain_blob,
-                                       pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL)))
-        while len(pending) >= max_pending:
-            yield pending.popleft().result()
+    for blobs in chunks():
+        pending.append(executor.submit(_analyse_chunk_pickled, chain_blob, blobs))
+        while len(pending) >= max_chunks:
+            yield from pending.popleft().result()
     while pending:
-        yield pending.popleft().result()
+        yield from pending.popleft().result()
+

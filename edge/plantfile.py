@@ -54,7 +54,7 @@ PLANT_SCHEMA: dict = {
         "fouling": _CALIBRATION_KIND,
         "replay": dict.fromkeys(("window_hours", "min_samples", "initial_minutes",
                                  "cip_off_minutes", "cip_windows", "max_gap_minutes", "optimize",
-                                 "dp_form", "hindsight", "surrogate")),
+                                 "dp_form", "hindsight", "surrogate", "lockstep_windows")),
         "heat_balance_limit_pct": None,
     },
     # the set-point advice (model.analysis.advice.AdviceSettings) and the compressor learning

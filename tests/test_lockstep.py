@@ -183,3 +183,46 @@ def test_a_bad_call_in_a_round_gets_its_own_error(plant):
     assert isinstance(out[1], lockstep.Failed)
     assert str(out[1].exc) == "deltas['HS_vol']: the HS compressor has no learned curves (Compressor)"
     assert out[0]["status"].notna().all()
+
+
+# ---- the replay in lockstep -------------------------------------------------------------------------
+LOCKSTEP_REPLAY_REL = 1e-6     # a replay's window figures in lockstep against window by window
+
+
+@pytest.fixture(scope="module")
+def day():
+    from simulator.export import export_history
+    return export_history(1.0, seed=5).history
+
+
+def test_replay_in_lockstep_agrees_with_window_by_window(plant, day):
+    """Windows analysed 4 at a time (two chunks and a rest) against one at a time (the gateway's
+    order): the same statuses and decisions, the figures within LOCKSTEP_REPLAY_REL."""
+    from model.analysis.replay import ReplaySettings, replay
+    one = replay(day, plant, ReplaySettings.from_config(plant.extra, surrogate=False, lockstep_windows=1))
+    four = replay(day, plant, ReplaySettings.from_config(plant.extra, surrogate=False, lockstep_windows=4))
+    a, b = one.windows, four.windows
+    assert len(a) >= 9 and (a["status"] == "ok").sum() >= 8
+    assert (a["optimization_ok"].astype(bool)).sum() >= 8
+    compared = 0
+    for c in a.columns:
+        x, y = a[c], b[c]
+        if x.dtype.kind == "f":
+            xv, yv = x.to_numpy(), y.to_numpy()
+            assert (np.isnan(xv) == np.isnan(yv)).all(), c
+            f = np.isfinite(xv)
+            assert np.all(np.abs(xv[f] - yv[f]) <= LOCKSTEP_REPLAY_REL * np.maximum(np.abs(xv[f]), 1.0)), c
+            compared += int(f.sum())
+        else:
+            assert (x.astype(str) == y.astype(str)).all(), c
+    assert compared > 200
+
+
+@pytest.mark.parametrize("value", [0, -3, 2.5, True, 257, "16"])
+def test_lockstep_windows_setting_is_checked(plant, value):
+    from model.analysis.replay import ReplayError, ReplaySettings
+    extra = dict(plant.extra, calibration={**(plant.extra.get("calibration") or {}),
+                                           "replay": {"lockstep_windows": value}})
+    with pytest.raises(ReplayError) as e:
+        ReplaySettings.from_config(extra)
+    assert str(e.value) == f"replay setting lockstep_windows must be a whole number 1..256, got {value!r}"

@@ -70,6 +70,8 @@ class ReplaySettings:
     hindsight: bool = False           # learn the compressors on the whole history first
     surrogate: bool = True            # as the gateway's "optimizer: auto": the surrogate fitted
                                       # from the windows' optima replaces the search once it qualifies
+    lockstep_windows: int = 16        # consecutive windows analysed in lockstep (run_windows); a
+                                      # window's surrogate is the one of the windows before its chunk
 
     @classmethod
     def from_config(cls, extra: dict | None, **overrides) -> "ReplaySettings":
@@ -96,6 +98,9 @@ class ReplaySettings:
             v = getattr(s, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ReplayError(f"replay setting {name} must be a number > 0, got {v!r}")
+        v = s.lockstep_windows
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 256:
+            raise ReplayError(f"replay setting lockstep_windows must be a whole number 1..256, got {v!r}")
         return s
 
 
@@ -262,7 +267,10 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
     chain_settings : default from plant.yaml (advice, compressor_learning).
     executor : anything with concurrent.futures' ``submit`` (a ProcessPoolExecutor, a Dask
         ``distributed.Client``): the windows' expensive analysis runs there (``run_windows``); the
-        results are identical to the sequential replay (None: in this process, window by window).
+        results are identical to the sequential replay with the surrogate off (None: in this
+        process). Either way consecutive windows run in lockstep, ``settings.lockstep_windows`` at a
+        time (``run_windows``): with the surrogate on, a window uses the surrogate fitted from the
+        windows before its chunk (1: from every window before it, as the gateway does).
     commissioning : {"initial": doc, "dp_clean": doc, "compressors": doc or None} as the gateway's
         state directory stores them: the plant was commissioned before the history starts; no
         initial window is taken from the history and windows start at its first sample.
@@ -360,7 +368,8 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
                 chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
             yield chain.prepare(history.loc[m].assign(timestamp=ts[m]), state, samples=True)
 
-    for n_done, partial in enumerate(run_windows(chain, tasks(), executor), start=1):
+    for n_done, partial in enumerate(run_windows(chain, tasks(), executor,
+                                                 lockstep_windows=s.lockstep_windows), start=1):
         start = partial.res.window_start
         while pending and start and pending[0]["end"] <= pd.Timestamp(start):
             c_ = pending.pop(0)         # the forecast restarts (pass 3's state; segments are pass 1's)
@@ -524,7 +533,7 @@ def _analyse_chunk_pickled(chain_blob: bytes, task_blobs: list) -> list:
 
 
 MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
-LOCKSTEP_WINDOWS = 16      # consecutive windows analysed in lockstep (one solver call per step of all)
+LOCKSTEP_WINDOWS = ReplaySettings.lockstep_windows   # run_windows' default chunk
 
 
 def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None,

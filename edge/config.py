@@ -26,7 +26,7 @@ from edge.advisory import AdvisoryConfig, AdvisoryField, parse_advisory
 from edge.codec import (BIT_SPACES, BOOL, BYTE_ORDERS, BYTE_ORDERS_16, REGISTER_SPACES, TYPES,
                         raw_limits, register_count)
 from edge.yamlfile import (MISSING, Problems, Section, display_path, finite_float, fmt_value,
-                           load_yaml)
+                           key_line, load_yaml)
 from model.columns import CANONICAL, REQUIRED as REQUIRED_TAGS
 from model.units import (CANONICAL_UNITS, DEFAULT_AMBIENT_BAR, PRESSURE_KINDS, UNITS, UnitError,
                          canonical_linear)
@@ -557,7 +557,8 @@ def _tag(sec: Section, name: str, ambient: float | None) -> tuple[TagConfig | No
     device_id = _device_id(sec, "device_id", default=None)
     place = None
     if register and type_ and address is not None:
-        place = (name, device_id, register, address, address + register_count(type_), bit)
+        place = (name, device_id, register, address, address + register_count(type_), bit,
+                 key_line(sec.data, "address"))
     if sec.count() != n0:
         return None, place
     try:
@@ -597,21 +598,21 @@ def _overlaps(p: Problems, file: str, placed: list[tuple]) -> None:
     """Overlapping registers of one device and space; bits of one register may share it."""
     widest = None
     bits_at: dict[int, dict[int, str]] = {}
-    for name, _dev, space, start, end, bit in sorted(placed, key=lambda t: (t[3], t[0])):
+    for name, _dev, space, start, end, bit, line in sorted(placed, key=lambda t: (t[3], t[0])):
         if bit is not None and widest is not None and widest[5] is not None \
                 and widest[3] == start and end == widest[4]:
             other = bits_at.setdefault(start, {widest[5]: widest[0]})
             if bit in other:
                 p.add(file, f"tag '{name}'", "bit", f"bit {bit} of {space} {start} is also "
-                      f"tag '{other[bit]}'")
+                      f"tag '{other[bit]}'", line=line)
             other[bit] = name
             continue
         if widest is not None and start < widest[4]:
             p.add(file, f"tag '{name}'", "address",
                   f"registers {space} {start}..{end - 1} overlap tag '{widest[0]}' "
-                  f"({space} {widest[3]}..{widest[4] - 1})")
+                  f"({space} {widest[3]}..{widest[4] - 1})", line=line)
         if widest is None or end > widest[4]:
-            widest = (name, _dev, space, start, end, bit)
+            widest = (name, _dev, space, start, end, bit, line)
 
 
 def _advisory_vs_plc_registers(p, gw_file, adv: AdvisoryConfig, tags, tags_path,

@@ -219,6 +219,14 @@ def _print(out: TextIO, text: str, clear: bool = False) -> None:
     out.flush()
 
 
+def _clip(text: str, n: int) -> str:
+    """``text`` cut to at most n characters at a word's end, "…" where it was cut."""
+    if len(text) <= n:
+        return text
+    cut = text[:n - 1]
+    return (cut.rsplit(" ", 1)[0] if " " in cut else cut).rstrip(" ,;:(") + "…"
+
+
 def _f(v, fmt: str, unit: str = "", none: str = "-") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return none
@@ -255,7 +263,7 @@ def _render(sim, gw, cfg, blk: dict, where: Path, speed: float, final: bool = Fa
         f"  expected change     COP {_f(blk.get('dCOP_pct'), '+.2f', '%')} (sd "
         f"{_f(blk.get('dCOP_sd_pct'), '.2f', '%')})   heat output {_f(blk.get('dQ_sink_pct'), '+.2f', '%')}",
         "  confidence          " + (("low: keep the current set point" + (
-            f" ({snap.advice_message[:90]})" if snap.advice_message else ""))
+            f" ({_clip(snap.advice_message, 90)})" if snap.advice_message else ""))
             if "advice_low_confidence" in bits else ("confident" if has else "-")),
         f"  geometric-mean p_m  {_f(blk.get('p_m_gm'), '7.2f', 'bar(g)')}",
         f"  fouling R_th,f      {_f(_milli(blk.get('R_th_f')), '7.3f', 'e-3 K/kW')}   simulator truth "

@@ -225,3 +225,27 @@ def test_simulate_checks_plant_yaml_like_every_command(tmp_path, capsys):
     assert rc == 2 and not (tmp_path / "h.csv").exists()
     assert "section 'calibrated': key 'R_th_f_K_per_kw': unknown key (did you mean " \
            "'R_th_f_K_per_kW'?)" in err
+
+
+def test_report_and_export_history_find_config_away_from_the_repository(tmp_path, monkeypatch, capsys):
+    """Like the other commands, report and export-history without --config use the source
+    checkout's config/ when the working directory has none (the README's service session)."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["export-history", "--out", "h.csv"]) == 2
+    err = capsys.readouterr().err
+    assert "file not found" not in err
+    db = load_config(str(REPO / "config" / "gateway.yaml"), load_plant=False).history_db
+    assert err == f"hp-edge export-history: {db}: no such history database\n"
+    assert main(["report", "missing-dir", "--out", "r.html"]) == 2
+    assert capsys.readouterr().err == ("hp-edge report: missing-dir: not a directory (expected the output "
+                                       "of hp-edge replay)\n")
+
+
+def test_demo_clips_the_advice_reason_at_a_word():
+    from edge.demo import _clip
+    text = ("in conditions like this window's the plant has run over p_m 14.60-16.60 bar(g) only "
+            "(less than 2 bar): the data do not show where the optimum lies")
+    assert _clip(text, 90) == ("in conditions like this window's the plant has run over p_m 14.60-16.60 "
+                               "bar(g) only…")
+    assert _clip("short", 90) == "short"
+    assert len(_clip("x" * 200, 90)) == 90

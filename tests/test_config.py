@@ -630,3 +630,14 @@ def test_plant_schema_knows_every_setting_of_the_analysis_sections():
                          ("surrogate_tracker", TrackerSettings)):
         assert set(PLANT_SCHEMA[section]) == {f.name for f in fields(cls)}, section
     assert set(PLANT_SCHEMA["calibration"]["replay"]) == {f.name for f in fields(ReplaySettings)}
+
+
+def test_overlapping_tags_name_the_line_of_the_address(cfgdir):
+    """An overlap names the line of the overlapping tag's address key, as every other problem."""
+    edit(cfgdir, "tags.yaml", lambda d: d["tags"]["T_sink_out"].update(address=d["tags"]["T_sink_in"]["address"]))
+    text = (cfgdir / "tags.yaml").read_text().splitlines()
+    start = text.index("  T_sink_out:")
+    line = next(i for i in range(start, len(text)) if text[i].strip().startswith("address:")) + 1
+    assert problems(lines=True) == [
+        f"config/tags.yaml: line {line}: tag 'T_sink_out': key 'address': registers input 0..0 overlap "
+        "tag 'T_sink_in' (input 0..0)"]

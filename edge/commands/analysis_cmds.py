@@ -502,7 +502,8 @@ def cmd_replay(args) -> int:
         header = ""
         if skipped or nn:
             header = f"rows skipped while reading: {skipped or 'none'}; non-numeric values: {nn or 'none'}"
-        text = write_replay_dir(res, out, {"plant": str(args.config), "history": str(args.history),
+        text = write_replay_dir(res, out, {"plant": str(find_config("plant.yaml", args.config)),
+                                           "history": str(args.history),
                                            "hp_edge_version": _version(), "workers": workers}, header)
         if args.save_state:
             write_state(INITIAL_CALIBRATION, res.initial.to_dict(), args.save_state)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from edge.config import DEFAULT_CONFIG
+from edge.config import DEFAULT_CONFIG, find_config
 from edge.plantfile import DEFAULT_PLANT
 
 
@@ -32,7 +32,9 @@ def register(sub) -> None:
                                    "history database)")
     p.add_argument("--data", help="with a replay directory: the history CSV it was made from, for "
                                   "the per-sample figures when the directory has no samples.csv")
-    p.add_argument("--config", default=DEFAULT_PLANT, help=f"plant file ({DEFAULT_PLANT})")
+    p.add_argument("--config", default=None,
+                   help=f"plant file (default: {DEFAULT_PLANT}, else /etc/hp-edge/plant.yaml, else the one "
+                        "beside the installed package)")
     p.add_argument("--from", dest="start", help="period start (ISO 8601, UTC when naive)")
     p.add_argument("--to", dest="end", help="period end (ISO 8601, UTC when naive)")
     p.add_argument("--max-model-samples", type=int, default=None,
@@ -51,8 +53,9 @@ def register(sub) -> None:
                     "ISO 8601 UTC first, the SPEC §4 columns in their canonical units, then the "
                     "gateway's quality mark) that replay, calibrate and report accept.")
     e.add_argument("--out", required=True, help="CSV file to write")
-    e.add_argument("--config", default=str(DEFAULT_CONFIG),
-                   help="gateway.yaml naming the history database (default: %(default)s)")
+    e.add_argument("--config", default=None,
+                   help=f"gateway.yaml naming the history database (default: {DEFAULT_CONFIG}, else "
+                        "/etc/hp-edge/gateway.yaml, else the one beside the installed package)")
     e.add_argument("--history", help="the history database (instead of --config)")
     e.add_argument("--from", dest="start", help="first sample (ISO 8601, UTC when naive)")
     e.add_argument("--to", dest="end", help="last sample (ISO 8601, UTC when naive)")
@@ -99,18 +102,19 @@ def cmd_report(args) -> int:
             raise CommandError("--max-model-samples must be at least 1")
         if args.window_hours <= 0 or args.cip_off_minutes <= 0:
             raise CommandError("--window-hours and --cip-off-minutes must be > 0")
-        params = load_plant(args.config)
+        plant_file = find_config("plant.yaml", args.config)
+        params = load_plant(plant_file)
         if args.source is not None:
             if args.state:
                 raise CommandError("--state goes with --history (a replay directory holds its state)")
-            data = load_replay(args.source, params, str(args.config), start, end,
+            data = load_replay(args.source, params, str(plant_file), start, end,
                                history_csv=args.data)
         else:
             if args.data:
                 raise CommandError("--data goes with a replay directory; the gateway's samples are "
                                    "in its history")
             state = Path(args.state) if args.state else Path(args.history).parent / "state"
-            data = load_gateway(args.history, state, params, str(args.config), start, end,
+            data = load_gateway(args.history, state, params, str(plant_file), start, end,
                                 window_hours=args.window_hours,
                                 cip_off_minutes=args.cip_off_minutes)
         res = build_report(data, args.out, args.max_model_samples or DEFAULT_MAX_MODEL_SAMPLES)
@@ -134,7 +138,7 @@ def cmd_export_history(args) -> int:
             db = Path(args.history)
         else:
             from edge.commands.gateway_cmds import load_config_or_report
-            cfg = load_config_or_report(args.config, load_plant=False)
+            cfg = load_config_or_report(find_config("gateway.yaml", args.config), load_plant=False)
             if cfg is None:
                 return 2
             db = cfg.history_db

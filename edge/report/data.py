@@ -382,8 +382,8 @@ def load_gateway(history_db: str | Path, state_dir: str | Path, params, plant: s
             cips[c] = _times(cips[c])
     forecast = _forecast_from_advice(adv, params.ambient_pressure / 1e5, notes)
     if forecast is None:
-        notes.append("the gateway's advice rows carry no fouling forecast (a gateway from before "
-                     "issue 10): no forecast in this report")
+        notes.append("the gateway's advice rows carry no fouling forecast (none written in the "
+                     "period yet, or a gateway from before issue 10): no forecast in this report")
     elif not forecast["R_th_f_forecast_K_per_kW"].notna().any():
         notes.append("no fouling forecast in the period yet (it needs a day of windows since the "
                      "last CIP or commissioning)")

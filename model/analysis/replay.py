@@ -173,7 +173,11 @@ class ReplayResult:
                              f"actual set points")
                 notes_ = adv.loc[~adv["advice_confident"].astype(bool), "advice_note"]
                 if len(notes_):
-                    top = notes_.str.replace(r"\s*\(.*?\)|[-+]?\d[\d.]*", "", regex=True).value_counts()
+                    # the reasons without their numbers (they group across windows): a number or
+                    # range becomes "…", an aside in parentheses goes
+                    top = (notes_.str.replace(r"\s*\(.*?\)", "", regex=True)
+                           .str.replace(r"[-+]?\d[\d.]*(?:-[-+]?\d[\d.]*)?", "…", regex=True)
+                           .str.replace(r"\s+", " ", regex=True).value_counts())
                     L.append("    not confident: " + "; ".join(f"{k.strip()} ({v})" for k, v in top.head(3).items()))
             for st in STAGES:
                 d = ok[f"eta_is_{st}_drift_pct"].dropna()

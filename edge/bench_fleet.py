@@ -12,7 +12,8 @@ the README's 198 s from before issue 12) replayed on one core, in this process:
   scan and Brent steps instead of the batched grids; ``model.proptable.use_tables(False)``: HEOS row
   by row on the measured side and in the compressor observations; ``model.optimize.TWO_LEVEL_SCAN``,
   ``EDGE_SHORTCUT``, ``BRENT_FROM_BRACKET`` off: the whole coarse grid and a bounded Brent search in
-  every window; ``model.cycle.LS_FLOAT_QUICK_ITER`` 0: the LS float by the full search), surrogate
+  every window; ``model.cycle.LS_FLOAT_QUICK_ITER`` 0: the LS float by the full search; the compiled
+  speed search ``model.analysis.speedkernel`` off: numpy's, the same numbers to the bit), surrogate
   off in both; the largest differences in R_th,f and the set points over the windows;
 * the *full-window* reference on the first ``ref_days`` of rows: the plain path with the advice
   evaluating every sample of the window instead of ``advice.representative_points`` (8) weighted
@@ -75,9 +76,11 @@ class plain_path:
         import model.batch as B
         import model.cycle as C
         import model.optimize as O
+        from model.analysis import speedkernel as K
         from model.proptable import use_tables
         self._old = (use_tables(False), O.TWO_LEVEL_SCAN, O.EDGE_SHORTCUT, O.BRENT_FROM_BRACKET,
-                     C.LS_FLOAT_QUICK_ITER, B.VECTORISED)
+                     C.LS_FLOAT_QUICK_ITER, B.VECTORISED, K._KERNEL, K._TRIED)
+        K._KERNEL, K._TRIED = None, True          # replay's enable() leaves it off
         O.TWO_LEVEL_SCAN = O.EDGE_SHORTCUT = O.BRENT_FROM_BRACKET = False
         C.LS_FLOAT_QUICK_ITER = 0
         B.VECTORISED = False
@@ -87,10 +90,20 @@ class plain_path:
         import model.batch as B
         import model.cycle as C
         import model.optimize as O
+        from model.analysis import speedkernel as K
         from model.proptable import use_tables
         (tables, O.TWO_LEVEL_SCAN, O.EDGE_SHORTCUT, O.BRENT_FROM_BRACKET, C.LS_FLOAT_QUICK_ITER,
-         B.VECTORISED) = self._old
+         B.VECTORISED, K._KERNEL, K._TRIED) = self._old
         use_tables(tables)
+
+
+def speed_kernel() -> str:
+    """Which learned-curve speed search the replays used: the compiled one or numpy's."""
+    from model.analysis import speedkernel
+    if speedkernel.active():
+        import numba
+        return f"numba {numba.__version__}"
+    return "numpy (numba not installed)"
 
 
 def _timed(f):
@@ -164,7 +177,7 @@ def bench_replay(params=None, days: float = 30.0, ref_days: float = 2.0, progres
     s_off = ReplaySettings.from_config(params.extra, surrogate=False)
     r_on, wall, cpu = _timed(lambda: replay(h, params, s_on, progress=progress))
     n_win = int(len(r_on.windows))
-    out["replay"] = {"wall_s": wall, "cpu_s": cpu, "windows": n_win,
+    out["replay"] = {"wall_s": wall, "cpu_s": cpu, "windows": n_win, "speed_kernel": speed_kernel(),
                      "windows_ok": int((r_on.windows["status"] == "ok").sum()), "cips": int(len(r_on.cips)),
                      "s_per_window": wall / max(n_win, 1), "cpu_s_per_window": cpu / max(n_win, 1),
                      "speedup_vs_baseline": BASELINE_REPLAY_30_DAYS_S / wall,
@@ -266,13 +279,14 @@ def bench_fleet(params=None, plants: int = 8, days: float = 30.0, workers: int =
             t = time.perf_counter()
             table = run_fleet(entries, d, executor=client)
             wall = time.perf_counter() - t
+            kernels = sorted(set(client.run(speed_kernel).values()))
         runs[n] = (d, table)
         out[f"workers_{n}"] = {"cluster_start_s": t_up, "wall_s": wall,
                                "plants_ok": int((table["status"] == "ok").sum()),
                                "windows": int(table["windows"].sum()),
                                "task_s_sum": float(table["replay_s"].sum()),
                                "task_s_max": float(table["replay_s"].max()),
-                               "load_average_after": list(os.getloadavg())}
+                               "speed_kernel": kernels, "load_average_after": list(os.getloadavg())}
         if progress is not None:
             progress(f"{n} worker(s): {wall:.1f} s")
     d1, t1 = runs[1]

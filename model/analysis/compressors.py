@@ -41,6 +41,7 @@ from ..fluid import Fluid, PropertyError, get_fluid
 from ..proptable import get_tables
 from ..params import POLY_BASIS, Compressor, PlantParams
 from ..units import BAR, C_to_K, m3h_to_m3s
+from . import speedkernel
 
 STAGES = ("LS", "HS")
 CURVES = ("eta_is", "eta_vol")
@@ -748,6 +749,15 @@ class LocalCurves:
         out[:, :, 2] = (1.0 - f) * k0[:, :, 5] + f * k1[:, :, 5]
         return out, inside & self.ok
 
+    def kernel_tables(self, rows: int) -> tuple:
+        """``model.analysis.speedkernel``'s tables of this grid (one member) and the rows' member."""
+        if "_ca" not in self.__dict__:
+            self._cell_v(self.p0, self.n0)
+        return ((self._ca[None], np.array([self.p0], dtype=float), np.array([self.dpi], dtype=float),
+                 np.array([self._ni], dtype=np.intp), np.array([self._nj], dtype=np.intp),
+                 np.array([bool(self.ok)]), np.array([self.n0], dtype=float),
+                 np.array([self.dn], dtype=float)), np.zeros(rows, dtype=np.intp))
+
     def value_dn_rows(self, Q: np.ndarray, inside_pi: np.ndarray, rows: np.ndarray, n, left=None):
         """``value_dn_v`` at (pi of ``rows_at``, n) for the rows ``rows`` of ``Q``: (values, d/dn,
         inside); the same numbers to round-off."""
@@ -1291,7 +1301,13 @@ def local_speed(loc, c, dl, target, pi, n0, n_lo: float, n_hi: float) -> tuple[n
     compressors), ``c`` the global curve's six coefficients (scalars, or one array per row each),
     ``dl`` the curve differences (None, six scalars or six arrays per row). Safeguarded Newton on
     phi(n) = eta_vol(pi, n) n, continued linearly beyond the speed bounds; NaN rows where the
-    scalar method raises."""
+    scalar method raises. With ``model.analysis.speedkernel`` enabled (replay) the compiled search,
+    the same numbers to the bit."""
+    if speedkernel._KERNEL is not None:
+        tables = getattr(loc, "kernel_tables", None)
+        if tables is not None:
+            tab, g = tables(len(target))
+            return speedkernel.run(tab, g, c, dl, target, pi, n0, n_lo, n_hi)
     Q, in_pi = loc.rows_at(pi)
     c_rows = np.ndim(c[0]) > 0                          # one global curve per row (stacked)
     rowwise = dl is not None and np.ndim(dl[0]) > 0     # per-row draws (Flowsheet.comp)

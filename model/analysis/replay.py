@@ -38,6 +38,7 @@ from .. import lockstep
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
 from .compressors import STAGES, CompressorLearner, observe
+from . import speedkernel
 
 WINDOW_COLUMNS = ROW_COLUMNS
 CIP_COLUMNS = ("cip_start", "cip_end", "duration_h", "detected_by", "R_th_f_before_K_per_kW",
@@ -280,6 +281,7 @@ def replay(history: pd.DataFrame, params: PlantParams, settings: ReplaySettings 
         initial window is taken from the history and windows start at its first sample.
     """
     t0 = time.perf_counter()
+    speedkernel.enable()            # the compiled speed search when numba is installed
     s = settings or ReplaySettings.from_config(params.extra)
     history = history.reset_index(drop=True)
     ts = _timestamps(history)
@@ -514,6 +516,7 @@ def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:
 def _analyse_pickled(chain_blob: bytes, task_blob: bytes) -> WindowPartial:
     """Pass 2 of one window in whichever process the executor chose (CoolProp state and property
     tables are built there on first use, never shipped)."""
+    speedkernel.enable()
     chain = pickle.loads(chain_blob)
     return chain.analyse(pickle.loads(task_blob))
 
@@ -533,6 +536,7 @@ def _analyse_chunk(chain: AnalysisChain, task_blobs: list) -> list:
 
 def _analyse_chunk_pickled(chain_blob: bytes, task_blobs: list) -> list:
     """``_analyse_chunk`` in whichever process the executor chose."""
+    speedkernel.enable()
     return _analyse_chunk(pickle.loads(chain_blob), task_blobs)
 
 

@@ -111,6 +111,11 @@ class _RowGrids:
         out[:, :, 2] = (1.0 - f) * k0[:, 5] + f * k1[:, 5]
         return out, inside
 
+    def kernel_tables(self, rows: int) -> tuple:
+        """``model.analysis.speedkernel``'s tables (every member) and the rows' members."""
+        t = self.t
+        return (t.ca, t.p0, t.dpi, t.ni, t.nj, t.ok, t.n0, t.dn), self.g
+
     def value_dn_rows(self, Q, inside_pi, rows, n, left=None):
         n0, dn = self.n0[rows], self.dn[rows]
         fin = np.isfinite(n)

@@ -1,0 +1,209 @@
+"""The learned curves' speed search (``compressors.local_speed``) compiled with numba (optional).
+
+A replay spends about a fifth of its time in this search: for every row of every flowsheet
+evaluation, the LS and HS speed at which the learned volumetric curve passes the stage's mass flow.
+The numpy version works on all rows at once but pays numpy's per-call cost in every Newton step and
+a (rows x speed nodes) table per search; this kernel walks each row on its own (about 4 curve
+evaluations a row).
+
+It computes every row with the same floating-point operations in the same order as the numpy
+version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``), so its numbers are the
+numpy version's to the bit (``tests/test_speedkernel.py``): a replay gives the same results with it
+or without it. numba is an optional extra (``pip install 'hp-edge[fast]'``, also in ``[fleet]``);
+only ``model.analysis.replay`` turns the kernel on (``enable``), so the gateway daemon never
+imports numba. Without numba everything runs on numpy.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_KERNEL = None          # the compiled function once ``enable`` succeeded
+_TRIED = False
+
+
+def _search(ca, p0, dpi, ni, nj, ok, n0g, dng, g, C, DL, has_dl, target, pi, nstart, has_n0,
+            n_lo, n_hi, z0, z1, z2, z3, tol, n_out, ev_out):
+    """Row by row ``local_speed``: ca (members, pi nodes, n nodes, 6) the local grids' polynomials,
+    p0 .. dng per member, g the rows' members, C (rows, 6) the global curves, DL (rows, 6) the curve
+    differences (used when has_dl), nstart the start speeds (when has_n0)."""
+    for r in range(target.shape[0]):
+        m = g[r]
+        t = target[r]
+        p = pi[r]
+        # rows_at: the pi cell of the row's grid
+        fin = math.isfinite(p)
+        x = ((p if fin else p0[m]) - p0[m]) / dpi[m]
+        i = np.floor(x)
+        in_pi = fin and i >= 0 and i < ni[m] and nj[m] > 0 and ok[m]
+        ii = int(i) if in_pi else 0
+        fx = x - i
+        zp = (p - z0) / z1
+        zp2 = zp * zp
+        c0, c1, c2, c3, c4, c5 = C[r, 0], C[r, 1], C[r, 2], C[r, 3], C[r, 4], C[r, 5]
+        a0, a1, a2, a3, a4, a5 = DL[r, 0], DL[r, 1], DL[r, 2], DL[r, 3], DL[r, 4], DL[r, 5]
+        # phi at the three first speeds: n_lo, n_hi, the start
+        ns = nstart[r] if has_n0 else 1.0
+        if ns != ns:
+            ns = 1.0
+        else:
+            if ns < n_lo:
+                ns = n_lo
+            if ns > n_hi:
+                ns = n_hi
+        f3 = np.empty(3)
+        d3 = np.empty(3)
+        for q in range(3):
+            nn = n_lo if q == 0 else (n_hi if q == 1 else ns)
+            f3[q], d3[q] = _phi(ca, m, ii, fx, zp, zp2, in_pi, nj[m], n0g[m], dng[m], p, nn, nn >= n_hi,
+                                c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
+        f_lo, f_hi, f_0 = f3[0], f3[1], f3[2]
+        d_lo, d_hi, d_0 = d3[0], d3[1], d3[2]
+        bad = (not (d_lo > 0.0 and d_hi > 0.0)) or not math.isfinite(t)
+        above = t > f_hi
+        below = t < f_lo
+        if above:
+            nx = n_hi + (t - f_hi) / d_hi
+        else:
+            nx = n_lo + (t - f_lo) / d_lo
+        if below and not above and not (nx > 0.0):
+            bad = True
+        n = ns
+        if not (above or below or bad):
+            a, b = n_lo, n_hi
+            for it in range(60):
+                na = n
+                if it == 0:
+                    f, df = f_0, d_0
+                else:
+                    f, df = _phi(ca, m, ii, fx, zp, zp2, in_pi, nj[m], n0g[m], dng[m], p, na, na >= n_hi,
+                                 c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
+                if f > t:
+                    b = na
+                else:
+                    a = na
+                step = (f - t) / df if df > 0 else 0.0
+                nn = na - step
+                if not (a <= nn and nn <= b):
+                    nn = 0.5 * (a + b)
+                n = nn
+                if abs(nn - na) < tol:
+                    break
+        if above or below:
+            n = nx
+        if bad:
+            n_out[r] = np.nan
+            ev_out[r] = np.nan
+        else:
+            n_out[r] = n
+            ev_out[r] = t / n
+
+
+def _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0, dn, p, nn, left, c0, c1, c2, c3, c4, c5,
+         has_dl, a0, a1, a2, a3, a4, a5, z2, z3):
+    """(eta_vol * n, d/dn) of one row at speed ratio nn: ``value_dn_rows`` on the row's pi cell, the
+    global curve outside the grid, plus the curve differences (``local_speed``'s ``phi``)."""
+    fin = math.isfinite(nn)
+    y = ((nn if fin else n0) - n0) / dn
+    j = np.floor(y)
+    fy = y - j
+    if left and fy == 0.0 and j > 0:
+        j = j - 1
+        fy = 1.0
+    inside = in_pi and fin and j >= 0 and j < njm
+    zn = (nn - z2) / z3
+    if inside:
+        jj = int(j)
+        # rows_at's node columns jj and jj + 1 (its blend across the pi cell)
+        ka, kb = ca[m, ii, jj], ca[m, ii + 1, jj]
+        qa0 = (1.0 - fx) * (ka[0] + ka[1] * zp + ka[3] * zp2) + fx * (kb[0] + kb[1] * zp + kb[3] * zp2)
+        qa1 = (1.0 - fx) * (ka[2] + ka[4] * zp) + fx * (kb[2] + kb[4] * zp)
+        qa2 = (1.0 - fx) * ka[5] + fx * kb[5]
+        ka, kb = ca[m, ii, jj + 1], ca[m, ii + 1, jj + 1]
+        qb0 = (1.0 - fx) * (ka[0] + ka[1] * zp + ka[3] * zp2) + fx * (kb[0] + kb[1] * zp + kb[3] * zp2)
+        qb1 = (1.0 - fx) * (ka[2] + ka[4] * zp) + fx * (kb[2] + kb[4] * zp)
+        qb2 = (1.0 - fx) * ka[5] + fx * kb[5]
+        va = qa0 + (qa1 + qa2 * zn) * zn
+        vb = qb0 + (qb1 + qb2 * zn) * zn
+        da = qa1 + 2.0 * qa2 * zn
+        db = qb1 + 2.0 * qb2 * zn
+        v = (1 - fy) * va + fy * vb
+        d = (vb - va) / dn + ((1 - fy) * da + fy * db) / z3
+    else:
+        v = c0 + c1 * p + c2 * nn + c3 * p * p + c4 * p * nn + c5 * nn * nn
+        d = c2 + c4 * p + 2.0 * c5 * nn
+    if has_dl:
+        v = v + (a0 + a1 * zp + a2 * zn + a3 * zp * zp + a4 * zp * zn + a5 * zn * zn)
+        d = d + (a2 + a4 * zp + 2.0 * a5 * zn) / z3
+    return v * nn, v + nn * d
+
+
+def enable() -> bool:
+    """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
+    False, and the numpy search stays, when numba is not installed or fails to compile."""
+    global _KERNEL, _TRIED
+    if _KERNEL is not None or _TRIED:
+        return _KERNEL is not None
+    _TRIED = True
+    try:
+        import numba
+    except ImportError:
+        return False
+    try:
+        jit = numba.njit(cache=True, error_model="numpy", fastmath=False)
+        phi = jit(_phi)
+        glb = dict(_search.__globals__)
+        glb["_phi"] = phi
+        search = type(_search)(_search.__code__, glb, _search.__name__)
+        _KERNEL = jit(search)
+        _probe()
+    except Exception:            # noqa: BLE001 -- any numba failure: the numpy search stays
+        _KERNEL = None
+        return False
+    return True
+
+
+def disable() -> None:
+    """Back to the numpy search (tests)."""
+    global _KERNEL
+    _KERNEL = None
+
+
+def active() -> bool:
+    return _KERNEL is not None
+
+
+def _probe() -> None:
+    """Compile for the argument types ``run`` passes (one row, no grid)."""
+    z = np.zeros((1, 2, 2, 6))
+    run((z, np.zeros(1), np.ones(1), np.zeros(1, dtype=np.intp), np.zeros(1, dtype=np.intp),
+         np.zeros(1, dtype=bool), np.zeros(1), np.ones(1)), np.zeros(1, dtype=np.intp),
+        tuple(np.zeros(1) + k for k in (0.5, 0.0, 0.3, 0.0, 0.0, 0.0)), None,
+        np.array([0.5]), np.array([2.0]), None, 0.5, 1.5)
+
+
+def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
+    """``local_speed``'s (n, eta_vol) with the compiled kernel. ``tables``: (ca (members, pi nodes,
+    n nodes, 6), p0, dpi, ni, nj, ok, n0, dn) per member; ``g`` the rows' members; ``c`` the global
+    curve (six scalars or six arrays per row), ``dl`` the curve differences (None, six scalars or
+    six arrays per row), ``n0`` the start speeds (None: 1)."""
+    from .compressors import _Z, SPEED_STEP_TOL
+    target = np.ascontiguousarray(target, dtype=float)
+    pi = np.ascontiguousarray(pi, dtype=float)
+    rows = target.shape[0]
+    C = np.empty((rows, 6))
+    for k in range(6):
+        C[:, k] = c[k]
+    DL = np.zeros((rows, 6))
+    if dl is not None:
+        for k in range(6):
+            DL[:, k] = dl[k]
+    ns = np.zeros(rows) if n0 is None else np.ascontiguousarray(np.broadcast_to(
+        np.asarray(n0, dtype=float), (rows,)))
+    ca, p0, dpi, ni, nj, ok, gn0, gdn = tables
+    n_out, ev_out = np.empty(rows), np.empty(rows)
+    _KERNEL(ca, p0, dpi, ni, nj, ok, gn0, gdn, np.ascontiguousarray(g, dtype=np.intp), C, DL,
+            dl is not None, target, pi, ns, n0 is not None, float(n_lo), float(n_hi),
+            float(_Z[0]), float(_Z[1]), float(_Z[2]), float(_Z[3]), float(SPEED_STEP_TOL), n_out, ev_out)
+    return n_out, ev_out

@@ -1,0 +1,121 @@
+"""The compiled speed search (model.analysis.speedkernel): the numpy search's numbers to the bit.
+
+The kernel is numba's (the ``fast`` extra, installed by ``make test``); without numba it is never
+used, so there is nothing to compare and these tests are skipped.
+
+- a learned compressor's ``speed_for_flow_v`` (its own grid, with and without a start speed, with a
+  curve draw as six scalars and as six per-row arrays), rows inside and outside the grid, beyond the
+  speed range, NaN inputs: equal to the numpy search bit for bit;
+- stacked compressors (``model.analysis.stacked``) likewise, rows of four members in one call;
+- a replay with the kernel gives the same windows as without it.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from model.analysis import speedkernel
+from model.analysis.compressors import LearnedCompressor, local_speed
+from model.analysis.stacked import Stacked
+from test_vcycle import _draw_learner, learned_params
+
+pytest.importorskip("numba", reason="the compiled speed search needs numba (the 'fast' extra)")
+
+
+@pytest.fixture(scope="module")
+def kernel():
+    assert speedkernel.enable(), "numba is installed but the speed kernel did not compile"
+    yield
+    # leave the process as it was found only if the kernel was off before (other tests expect either)
+
+
+def _both(fn):
+    """(numpy result, kernel result) of ``fn()``."""
+    keep = speedkernel._KERNEL
+    speedkernel._KERNEL = None
+    try:
+        ref = fn()
+    finally:
+        speedkernel._KERNEL = keep
+    assert speedkernel.active()
+    return ref, fn()
+
+
+def _rows(k: int, seed: int):
+    rng = np.random.default_rng(seed)
+    pi = np.where(rng.random(k) < 0.6, rng.normal(2.1, 0.3, k), rng.uniform(1.2, 4.8, k))
+    m, rho = rng.uniform(0.05, 3.0, k), rng.uniform(3.0, 30.0, k)
+    n0 = rng.uniform(0.3, 1.6, k)
+    # a few rows the search must refuse or carry: NaN inputs, a start speed NaN, zero flow
+    pi[:3] = [np.nan, 2.0, 2.2]
+    m[3:5] = [np.nan, 0.0]
+    n0[5] = np.nan
+    return m, rho, pi, n0
+
+
+def _equal(a, b):
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)       # NaN in the same places, every other bit equal
+
+
+def test_learned_compressor_speeds_equal_the_numpy_search_to_the_bit(plant, kernel):
+    learner, draws = _draw_learner(plant)
+    comp = learner.compressor("HS")
+    drawn = learner.compressor("HS", delta=draws[0]["HS"])
+    assert isinstance(comp, LearnedCompressor) and comp.local_vol.ok
+    m, rho, pi, n0 = _rows(3000, 11)
+    for c in (comp, drawn):
+        ref, got = _both(lambda: c.speed_for_flow_v(m, rho, pi, n0))
+        _equal(ref, got)
+        ref, got = _both(lambda: c.speed_for_flow_v(m, rho, pi))
+        _equal(ref, got)
+        # the search covered what it should: solved rows, rows beyond the range, refused rows
+        n = got[0]
+        assert np.isfinite(n).sum() > 2000
+        assert (n > c.N_max / c.N_nom).any() and (n < c.N_min / c.N_nom).any()
+        assert np.isnan(n[[0, 3]]).all()
+    # a draw as per-row arrays (what Flowsheet.comp hands over for uncertainty draws)
+    rows = len(m)
+    per_row = tuple(np.full(rows, x) * np.linspace(0.5, 1.5, rows) for x in drawn.delta_vol)
+    target = m / (rho * comp.swept_volume)
+    lo, hi = comp.N_min / comp.N_nom, comp.N_max / comp.N_nom
+    ref, got = _both(lambda: local_speed(comp.local_vol, comp.eta_vol, per_row, target, pi, n0, lo, hi))
+    _equal(ref, got)
+    assert np.isfinite(got[0]).sum() > 2000
+
+
+def test_stacked_speeds_equal_the_numpy_search_to_the_bit(plant, kernel):
+    learned = learned_params(plant, delta=False)
+    learner, draws = _draw_learner(plant)
+    comps = [plant.comp_LS, learned.comp_LS, learner.compressor("LS"),
+             learner.compressor("LS", delta=draws[1]["LS"])]
+    st = Stacked(comps)
+    k = 4000
+    g = np.random.default_rng(3).integers(0, len(comps), k)
+    m, rho, pi, n0 = _rows(k, 12)
+    zero = np.zeros((k, 6))
+    d_vol = zero.copy()
+    d_vol[g == 3] = comps[3].delta_vol
+    v = st.view(g, None, tuple(d_vol.T))
+    ref, got = _both(lambda: v.speed_for_flow_v(m, rho, pi, n0))
+    _equal(ref, got)
+    assert np.isfinite(got[0][g == 1]).sum() > 500
+    ref, got = _both(lambda: st.view(g).speed_for_flow_v(m, rho, pi))
+    _equal(ref, got)
+
+
+def test_replay_with_the_kernel_gives_the_same_windows(plant, kernel, monkeypatch):
+    from model.analysis.replay import replay
+    from simulator.synthetic import Noise, Operation, Truth, generate
+    op = Operation(hours=14, commissioning_minutes=120, gap_after_commissioning_days=3)
+    hist = generate(plant, op, Truth(), Noise(), seed=4).history
+    rows = []
+    run = speedkernel.run
+    monkeypatch.setattr(speedkernel, "run", lambda *a: rows.append(len(a[4])) or run(*a))
+    ref, got = _both(lambda: replay(hist, plant).windows)
+    assert sum(rows) > 10_000             # the replay's speed searches ran in the kernel
+    assert len(got) >= 4 and got["status"].eq("ok").sum() >= 3
+    num = [c for c in got.columns if pd.api.types.is_numeric_dtype(got[c])]
+    pd.testing.assert_frame_equal(ref[num], got[num], check_exact=True)
+    pd.testing.assert_frame_equal(ref.drop(columns=num), got.drop(columns=num))

@@ -378,6 +378,9 @@ def p_sat(T_K, fluid: str = "Ammonia", backend: str = "HEOS") -> np.ndarray:
     return _PSAT[key](T_K)
 
 
+EVAPORATOR_INPUTS = ("T_source_in", "T_source_out", "V_source")
+
+
 def evaporator_outputs(data: pd.DataFrame | dict, params: PlantParams) -> dict[str, np.ndarray]:
     """p_e_bar [bar abs] and dp_source_bar [bar] per row in closed form (no cycle solve).
 
@@ -427,6 +430,7 @@ class _Problem:
         if (~finite).sum():
             self.dropped["missing value"] = int((~finite).sum())
         self.data = d.loc[finite]
+        self._cols: dict[str, np.ndarray] = {}     # self.data's columns as float arrays (per data)
         self.model_cols = sorted({TARGETS[g.target][1] for g in spec.goals})
         self.last_good: dict[str, np.ndarray] = {}
         if len(self.data) == 0:
@@ -435,11 +439,19 @@ class _Problem:
     def theta(self, x: np.ndarray) -> np.ndarray:
         return self.lo + x * (self.hi - self.lo)
 
+    def col(self, name: str) -> np.ndarray:
+        """``self.data[name]`` as floats, converted once per ``self.data`` (the residuals run
+        hundreds of times a window on the same rows)."""
+        a = self._cols.get(name)
+        if a is None:
+            a = self._cols[name] = self.data[name].to_numpy(dtype=float)
+        return a
+
     def outputs(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         self.evals += 1
         par = apply_values(self.params, dict(zip(self.names, theta)))
         if self.spec.fast:
-            return evaporator_outputs(self.data, par)
+            return evaporator_outputs({c: self.col(c) for c in EVAPORATOR_INPUTS}, par)
         frame = simulate_batch(self.data, par, columns=tuple(self.model_cols))
         st = frame["status"].to_numpy()
         solved = st == "ok"
@@ -461,10 +473,11 @@ class _Problem:
                 key = f"model: {r}"
                 self.dropped[key] = self.dropped.get(key, 0) + int(k)
             self.data = self.data.loc[ok]
+            self._cols = {}
             if len(self.data) == 0:
                 raise CalibrationError(f"{self.spec.kind} calibration: the model solves none of the samples")
         for g in self.spec.goals:
-            meas = self.data[TARGETS[g.target][0]].to_numpy(dtype=float)
+            meas = self.col(TARGETS[g.target][0])
             if g.statistic == "nrmse" and not np.mean(meas) > 0:
                 raise CalibrationError(f"{self.spec.kind} calibration: mean of measured {g.target} is "
                                        f"{np.mean(meas):.4g}; NRMSE needs a positive mean")
@@ -475,7 +488,7 @@ class _Problem:
         errs = {}
         for g in self.spec.goals:
             mcol, scol = TARGETS[g.target]
-            meas = self.data[mcol].to_numpy(dtype=float)
+            meas = self.col(mcol)
             sim = out[scol]
             bad = ~np.isfinite(sim)
             if bad.any():     # a row the model solved at the start fails here: keep its last value

@@ -226,3 +226,7 @@ def test_lockstep_windows_setting_is_checked(plant, value):
     with pytest.raises(ReplayError) as e:
         ReplaySettings.from_config(extra)
     assert str(e.value) == f"replay setting lockstep_windows must be a whole number 1..256, got {value!r}"
+    # built in code, not from plant.yaml: the same check
+    with pytest.raises(ReplayError) as e:
+        ReplaySettings(lockstep_windows=value)
+    assert str(e.value) == f"replay setting lockstep_windows must be a whole number 1..256, got {value!r}"

@@ -93,16 +93,18 @@ class ReplaySettings:
         if "window_minutes" in ini:
             kw.setdefault("initial_minutes", ini["window_minutes"])
         kw.update({k: v for k, v in overrides.items() if v is not None})
-        s = cls(**kw)
+        return cls(**kw)
+
+    def __post_init__(self):
+        """The settings' checks, however they were built (plant.yaml, the CLI or code)."""
         for name in ("window_hours", "min_samples", "initial_minutes", "cip_off_minutes", "cip_windows",
                      "max_gap_minutes"):
-            v = getattr(s, name)
+            v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ReplayError(f"replay setting {name} must be a number > 0, got {v!r}")
-        v = s.lockstep_windows
+        v = self.lockstep_windows
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 256:
             raise ReplayError(f"replay setting lockstep_windows must be a whole number 1..256, got {v!r}")
-        return s
 
 
 @dataclass

@@ -568,13 +568,15 @@ class LocalCurves:
             mu = s.local_prior_weight
             A_tot = A + mu * G
             b_tot = w @ bs + mu * (G @ global_coef)
-            for k, ok_k, Ak, bk in zip(k_near, fitted, A_tot, b_tot):
-                if not ok_k:
-                    continue
-                try:
-                    coef[k] = np.linalg.solve(Ak, bk)
-                except np.linalg.LinAlgError:
-                    continue
+            idx = k_near[fitted]
+            try:        # every node in one call (LAPACK's gesv per node: each node's numbers as alone)
+                coef[idx] = np.linalg.solve(A_tot[fitted], b_tot[fitted][:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:       # a singular node: node by node, skipping it
+                for k, Ak, bk in zip(idx, A_tot[fitted], b_tot[fitted]):
+                    try:
+                        coef[k] = np.linalg.solve(Ak, bk)
+                    except np.linalg.LinAlgError:
+                        continue
         self.coef = coef.reshape(npi, nn, 6)
         self.valid = np.isfinite(self.coef).all(axis=2)
         # the outermost ring of nodes answers with the global curve, so that the blend meets the

@@ -200,3 +200,27 @@ def test_history_without_required_columns_names_them(csv_file, tmp_path, capsys)
         assert err.endswith(f"{thin}: missing column(s) p_source_out, W_HS "
                             "(canonical history columns, SPEC §4)"), err
     assert not (tmp_path / "o").exists() and not (tmp_path / "s").exists()   # nothing written
+
+
+P_E_MODEL_TOL_BAR = 0.03   # bar: a window's mean adaptive-model p_e against the measured mean
+
+
+def test_samples_carry_the_models_evaporating_pressure(result):
+    """samples.csv has the fixed and adaptive models' p_e on the figure rows (the report's p_e
+    panel): fouling lowers the evaporating pressure, so the adaptive (fouled) model's p_e lies below
+    the clean model's wherever the window found fouling, and it follows the measured p_e."""
+    s = result.samples
+    w = result.windows.set_index("window_start")
+    both = s.dropna(subset=["p_e_bar_fixed", "p_e_bar_adaptive"])
+    assert len(both) >= 10 * (w["status"] == "ok").sum()
+    R = w.loc[both["window_start"], "R_th_f_K_per_kW"].to_numpy(dtype=float)
+    fouled = R > 0.5e-3                     # K/kW
+    assert fouled.sum() > len(both) // 2
+    fx, ad = both["p_e_bar_fixed"].to_numpy(), both["p_e_bar_adaptive"].to_numpy()
+    assert (ad[fouled] < fx[fouled]).all()
+    # the calibration fits p_e: per window the adaptive model's mean p_e meets the measured mean
+    # (per sample the sensor noise remains), and it is closer to the measurement than the clean model
+    meas = both["p_e_bar_measured"].to_numpy()
+    bias = pd.Series(ad - meas).groupby(both["window_start"].to_numpy()).mean()
+    assert bias.abs().max() < P_E_MODEL_TOL_BAR
+    assert np.sqrt(np.mean((ad - meas) ** 2)) < np.sqrt(np.mean((fx - meas) ** 2))

@@ -729,7 +729,7 @@ class AnalysisChain:
 
     def _model_figures(self, res: WindowResult, der: pd.DataFrame, fixed: PlantParams,
                        adaptive: PlantParams, seed: tuple | None = None) -> None:
-        cols = ("Q_sink_kW", "W_total_kW", "COP")
+        cols = ("Q_sink_kW", "W_total_kW", "COP", "p_e_bar")
         n = len(der)
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
         sub = der.iloc[keep]
@@ -778,8 +778,9 @@ class AnalysisChain:
 
 
 def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
-    """Per-sample model series of one window (replay's samples.csv): the model figures' COP and heat
-    output (on the evenly spaced figure rows) and the learned eta_is curve at each sample."""
+    """Per-sample model series of one window (replay's samples.csv): the model figures' COP, heat
+    output and evaporating pressure (on the evenly spaced figure rows) and the learned eta_is curve
+    at each sample."""
     data = task.data
     out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
     out["window_start"] = res.window_start
@@ -787,7 +788,8 @@ def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
     if series is not None:
         for kind in ("fixed", "adaptive"):
             f = series[kind]
-            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}")):
+            for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}"),
+                              ("p_e_bar", f"p_e_bar_{kind}")):
                 v = np.full(len(out), np.nan)
                 v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
                 out[name] = v

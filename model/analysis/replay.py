@@ -49,7 +49,7 @@ FORECAST_COLUMNS = ("window_end", "forecast_at", "R_th_f_forecast_K_per_kW", "R_
                     "fouling_cost_eur_per_day", "days_to_recommended_cip")
 SAMPLE_COLUMNS = ("timestamp", "usable", "reason", "window_start", "COP_measured", "COP_fixed",
                   "COP_adaptive", "Q_sink_kW_measured", "Q_sink_kW_fixed", "Q_sink_kW_adaptive",
-                  "p_e_bar_measured", "eta_is_LS_meas", "eta_is_HS_meas", "eta_is_LS_model",
+                  "p_e_bar_measured", "p_e_bar_fixed", "p_e_bar_adaptive", "eta_is_LS_meas", "eta_is_HS_meas", "eta_is_LS_model",
                   "eta_is_HS_model", "pi_LS", "pi_HS", "N_LS_rpm", "N_HS_rpm", "p_m_sp_barg",
                   "heat_balance_pct")
 

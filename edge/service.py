@@ -249,6 +249,9 @@ class ModelAdvisor:
             v = doc.get(key)
             if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
                 setattr(st, key, float(v))
+        turn = doc.get("cost_turn")
+        if isinstance(turn, int) and not isinstance(turn, bool) and turn >= 0:
+            st.cost_turn = turn
         prev = doc.get("fouling_previous")
         if isinstance(prev, dict):
             st.fouling_previous = prev
@@ -264,7 +267,8 @@ class ModelAdvisor:
         st = self.cstate
         return {"last_rec_barg": st.last_rec_barg, "cond_factor": st.cond_factor,
                 "T_out_sp_C": st.T_out_sp_C, "fouling_previous": st.fouling_previous,
-                "forecast": st.forecast.to_dict(), "cip_watch": self._watch.to_dict()}
+                "forecast": st.forecast.to_dict(), "cost_turn": st.cost_turn,
+                "cip_watch": self._watch.to_dict()}
 
     def _watch_cips(self, stored: list[dict]) -> None:
         """Issue 10: CIPs in the stored samples (``CipWatch``) reset the chain's forecast; the

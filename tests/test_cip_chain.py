@@ -216,6 +216,46 @@ def test_chain_cost_closes_against_two_model_runs_by_hand(plant):
         pd.Timestamp(res.window_end) - pd.Timestamp(res.window_start)).total_seconds() / DAY, rel=1e-9)
 
 
+def test_cost_levels_turn_with_every_analysed_window_and_the_post_reset_level_is_interpolated(plant):
+    """Each analysed window runs R_th,f 0, its own level and the next two cost levels in turn (pass
+    2, whatever the windows before were priced); the cost against the level after the last reset is
+    the two runs' terms with that level interpolated between the levels run."""
+    from model.analysis.chain import AnalysisChain, ChainSettings
+    from model.analysis.cip import cost_levels_for
+    from model.analysis.cost import cost_rate_eur_per_day, pump_extra_power_kW
+    from model.calibration import spec_from_config
+    from simulator.synthetic import Noise, Operation, Truth, generate
+
+    c = CipSettings(electricity_price_eur_per_MWh=120.0, replacement_heat_eur_per_MWh=60.0)
+    h = generate(plant, Operation(hours=8.2, commissioning_minutes=0), Truth(), Noise(), seed=6).history
+    chain = AnalysisChain(plant, spec_from_config(plant.extra, "fouling"),
+                          ChainSettings(optimize=False, learn_compressors=False, cip=c))
+    state = chain.new_state(None, None)
+    checked = 0
+    for k in range(4):
+        R_post, CF_post = state.forecast.R_post, state.forecast.CF_post
+        res = chain.window(h.iloc[20 + 120 * k:140 + 120 * k], state)
+        assert res.ok, res.status
+        assert state.cost_turn == k + 1
+        d = res.detail["cip"]
+        assert d["levels_K_per_kW"] == sorted({0.0, res.R_th_f_K_per_kW, *cost_levels_for(c, k)})
+        assert cost_levels_for(c, k) == ([2e-3, 4e-3] if k % 2 == 0 else [6e-3, 8e-3])
+        if R_post is None or d["runs"] is None:
+            continue
+        assert R_post not in d["levels_K_per_kW"]
+        runs = LevelRuns(np.array(d["levels_K_per_kW"]), d["runs"]["Q_sink_kW"], d["runs"]["W_kW"],
+                         d["runs"]["Q_source_kW"])
+        t = fouling_cost_terms(runs.at(res.R_th_f_K_per_kW), runs.at(R_post), 120.0, 60.0)
+        V = h["V_source"].iloc[20 + 120 * k:140 + 120 * k].to_numpy(dtype=float)
+        dp_clean = float(np.mean(state.fixed.dp_clean(V / 3600.0)) / 1e5)
+        cf_post = CF_post if CF_post is not None else 1.0
+        pump = pump_extra_power_kW(float(np.mean(V)), max((res.CF_dp_f - cf_post) * dp_clean, 0.0), c.eta_pump)
+        assert res.fouling_cost_vs_post_eur_per_day == pytest.approx(
+            t["cost_eur_per_day"] + cost_rate_eur_per_day(pump, 120.0), rel=1e-9)
+        checked += 1
+    assert checked >= 2
+
+
 # ------------------------------------------------------------------ the registers
 
 def test_registers_carry_the_forecast():
@@ -403,12 +443,14 @@ def test_gateway_finds_a_cip_resets_the_forecast_and_keeps_it_over_restarts(tmp_
         fs = adv.cstate.forecast
         assert len(fs.R) == 1 and fs.reset_kind == "first window"
         before = json.loads(json.dumps(fs.to_dict()))
+        assert adv.cstate.cost_turn == 1                  # one window analysed: the cost levels' turn
         adv.ingest(samples[130:150])                     # the CIP begins; the gateway stops here
     finally:
         store.close()
     adv, store = _advisor(tmp_path)
     try:
         assert json.loads(json.dumps(adv.cstate.forecast.to_dict())) == before
+        assert adv.cstate.cost_turn == 1                  # kept over the restart
         assert adv._watch.down_since is not None          # the stop in progress was remembered
         adv.ingest(samples[150:])
         fs = adv.cstate.forecast
@@ -424,7 +466,7 @@ def test_gateway_finds_a_cip_resets_the_forecast_and_keeps_it_over_restarts(tmp_
         b = adv.advise(samples[-1].timestamp)
         assert b.ok, b.message
         assert pd.Timestamp(b.detail["window"]["window_start"]).timestamp() >= first_after.timestamp
-        assert len(adv.cstate.forecast.R) == 1
+        assert len(adv.cstate.forecast.R) == 1 and adv.cstate.cost_turn == 2
         assert b.values["fouling_cost_cum"] < a.values["fouling_cost_cum"] * 2
     finally:
         store.close()

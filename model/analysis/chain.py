@@ -37,7 +37,7 @@ from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
 from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, settle_advice
-from .cip import CipSettings, ForecastState, explain, forecast_window
+from .cip import CipSettings, ForecastState, cost_levels_for, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe
 from .surrogate_tracker import SurrogateTracker, TrackerSettings, optimum_row
@@ -93,6 +93,7 @@ class ChainState:
     T_out_sp_C: float | None = None             # the LS speed controller's T_source,out set point
     tracker: SurrogateTracker | None = None     # the surrogate fitted from the window optima
     forecast: ForecastState = field(default_factory=ForecastState)   # issue 10, since the last reset
+    cost_turn: int = 0                          # windows that reached pass 2 (turns the cost levels)
 
 
 @dataclass
@@ -232,6 +233,7 @@ class WindowTask:
     samples: bool = False                       # return the per-sample series (replay)
     done: bool = False                          # res is final (skipped or failed in pass 1)
     tracker: SurrogateTracker | None = None     # the qualified surrogate as of pass 1 (optimizer: auto)
+    cost_turn: int = 0                          # the window's turn of the cost levels (cost_levels_for)
 
 
 @dataclass
@@ -249,8 +251,12 @@ class WindowPartial:
     surrogate: dict | None = None               # the surrogate's prediction taken in place of the search
     tracker_row: dict | None = None             # the surrogate tracker's row of this window (pass 2)
     seed: tuple | None = None                   # (VResult, rows): the advice's representative points
-                                                # at the actual set points, where pass 3 starts from
+                                                # at the actual set points
+    cost_runs: dict | None = None               # the cost of fouling's model runs (pass 2, ``_cost_runs``)
     samples: pd.DataFrame | None = None         # per-sample model series (replay's samples.csv)
+
+
+COST_COLUMNS = ("Q_sink_kW", "W_total_kW", "Q_source_kW")     # what the cost of fouling's runs give
 
 
 def _nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
@@ -499,6 +505,9 @@ class AnalysisChain:
                 state.fouling_previous = fc.params
             else:
                 task.done = True
+        if not task.done:
+            task.cost_turn = state.cost_turn
+            state.cost_turn += 1
         return task
 
     def _calibrate(self, res: WindowResult, der: pd.DataFrame, base: PlantParams,
@@ -617,6 +626,9 @@ class AnalysisChain:
                                                   ev=d.ev, bounds=(d.lo, d.hi))
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
+        # ---- the cost of fouling's model runs (issue 10): every level pass 3 may need
+        if self.s.cip.enabled:
+            out.cost_runs = self._cost_runs(res, adv_in, adaptive, out.seed, task.cost_turn)
 
     def finish(self, partial: WindowPartial, state: ChainState) -> WindowResult:
         """Pass 3 (in window order): what depends on the windows before — the fouling forecast,
@@ -629,8 +641,7 @@ class AnalysisChain:
             state.cond_factor = partial.cond_factor
         # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
         if self.s.cip.enabled and partial.adaptive is not None:
-            self._forecast(res, partial.cost_in, partial.der, state.fixed, partial.adaptive, state,
-                           seed_ev=partial.seed)
+            self._forecast(res, partial, state)
         if partial.draft is not None and res.ok:
             used = partial.surrogate
             try:
@@ -660,31 +671,47 @@ class AnalysisChain:
         return representative(data, n, groups(data, n))
 
     # ---- issue 10 ------------------------------------------------------------------------------
-    def _forecast(self, res: WindowResult, cost_in: pd.DataFrame, der: pd.DataFrame,
-                  fixed: PlantParams, adaptive: PlantParams, state: ChainState,
-                  seed_ev=None) -> None:
-        """The adaptive model at R_th,f levels (0, the window's, the level after the last reset, and
-        cip.cost_levels_per_window of cip.cost_levels_K_per_kW in turn: the plan's cost curve is
-        their mean over cip.cost_average_hours) on ``cip.cost_points`` representative operating
-        points of the window, the
-        LS saturating as the plant's does (heat lost at its speed limit is part of the cost), then
-        ``cip.forecast_window``: the estimates join the forecast since the last reset, the window
-        is priced, the cost cumulated and the CIP planned."""
+    def _cost_runs(self, res: WindowResult, cost_in: pd.DataFrame, adaptive: PlantParams,
+                   seed: tuple | None, turn: int) -> dict:
+        """Pass 2 of the cost of fouling: the adaptive model at R_th,f 0, the window's level and the
+        window's turn of the cost levels (``cip.cost_levels_per_window`` of
+        ``cip.cost_levels_K_per_kW``, ``cost_levels_for``) on ``cip.cost_points`` representative
+        operating points of the window, the LS saturating as the plant's does (heat lost at its
+        speed limit is part of the cost); each row starts from the nearest of the advice's
+        solutions. In pass 2, so that a replay answers the calls of the windows in lockstep
+        together. {"levels": [K/kW], "frames": [DataFrame per level], "rows", "w", "seconds",
+        "cpu_seconds"}."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        c = self.s.cip
+        R = res.R_th_f_K_per_kW
+        levels = sorted({0.0, *cost_levels_for(c, turn), *((R,) if math.isfinite(R) and R >= 0 else ())})
+        rows, w = representative(cost_in, c.cost_points)
+        k = len(rows)
+        sd, seed_rows = seed if seed is not None else (None, None)
+        allf = simulate_many(pd.concat([rows] * len(levels), ignore_index=True), adaptive,
+                             columns=COST_COLUMNS, ls_mode="float",
+                             R_th_f=np.repeat(np.asarray(levels) * 1e-3, k), seed=sd, seed_rows=seed_rows)
+        frames = [allf.iloc[i * k:(i + 1) * k].reset_index(drop=True) for i in range(len(levels))]
+        return {"levels": levels, "frames": frames, "rows": rows, "w": w,
+                "seconds": time.perf_counter() - t0, "cpu_seconds": time.thread_time() - c0}
+
+    def _forecast(self, res: WindowResult, partial: WindowPartial, state: ChainState) -> None:
+        """Pass 3 of the cost of fouling and the forecast: pass 2's model runs (``_cost_runs``) as
+        the window's ``LevelRuns`` (the plan's cost curve is the cost levels' mean over
+        ``cip.cost_average_hours``; the level after the last reset, for the cost against it, is
+        interpolated between the levels run), then ``cip.forecast_window``: the estimates join the
+        forecast since the last reset, the window is priced, the cost cumulated and the CIP
+        planned."""
         t0, c0 = time.perf_counter(), time.thread_time()
         c = self.s.cip
         fs = state.forecast
+        der, fixed = partial.der, state.fixed
         R = res.R_th_f_K_per_kW
-        levels = sorted({0.0, *fs.levels_now(c),
-                         *(x for x in (R, fs.R_post) if x is not None and math.isfinite(x) and x >= 0)})
-        rows, w = representative(cost_in, c.cost_points)
-        cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
-        # every level in one call, each row starting from the nearest of the advice's solutions
-        k = len(rows)
-        seed, seed_rows = seed_ev if seed_ev is not None else (None, None)
-        allf = simulate_many(pd.concat([rows] * len(levels), ignore_index=True), adaptive, columns=cols,
-                             ls_mode="float", R_th_f=np.repeat(np.asarray(levels) * 1e-3, k),
-                             seed=seed, seed_rows=seed_rows)
-        frames = [allf.iloc[i * k:(i + 1) * k].reset_index(drop=True) for i in range(len(levels))]
+        cr = partial.cost_runs
+        if cr is None:           # a partial made without the cip settings on: run the levels now
+            cr = self._cost_runs(res, partial.cost_in, partial.adaptive, partial.seed, state.cost_turn)
+        levels, frames, rows, w = cr["levels"], cr["frames"], cr["rows"], cr["w"]
+        cols = COST_COLUMNS
         keep = np.logical_and.reduce([solved_mask(f) for f in frames])
         runs, note = None, ""
         if keep.any():
@@ -708,7 +735,8 @@ class AnalysisChain:
                                                                  "W_kW": list(runs.W_kW),
                                                                  "Q_source_kW": list(runs.Q_source_kW)},
                              "rows_solved": int(keep.sum()), "rows": int(len(keep)),
-                             "seconds": time.perf_counter() - t0, "cpu_seconds": time.thread_time() - c0}
+                             "seconds": cr["seconds"] + time.perf_counter() - t0,
+                             "cpu_seconds": cr["cpu_seconds"] + time.thread_time() - c0}
         res.detail["cost_rows"] = rows.iloc[np.flatnonzero(keep)], w[keep]
 
     def _fouling_figures(self, res: WindowResult, fc: CalibrationResult, fixed: PlantParams,

@@ -355,14 +355,9 @@ class ForecastState:
     CF_post: float | None = None
     curve_pts: list = field(default_factory=list)   # [t_end_s, level K/kW, f EUR/day] (not reset)
     cip_costs: list = field(default_factory=list)   # [t_end_s, cost of one CIP EUR] (not reset)
-    n_windows: int = 0                              # windows priced (turns the cost levels)
+    n_windows: int = 0                              # windows priced
 
     # ---- the plan's cost curve: the windows of the last cost_average_hours -------------------------
-    def levels_now(self, s: CipSettings) -> list:
-        """The cost levels this window runs (``cost_levels_per_window`` of them, in turn)."""
-        L = list(s.cost_levels_K_per_kW)
-        k = min(s.cost_levels_per_window, len(L))
-        return sorted({L[(self.n_windows * k + j) % len(L)] for j in range(k)})
 
     def add_curve(self, t_end_s: float, points, cip_cost_eur: float, s: CipSettings) -> None:
         cut = t_end_s - s.cost_average_hours * 3600.0
@@ -660,6 +655,14 @@ class WindowForecast:
 FORECAST_FIELDS = tuple(WindowForecast(0.0, 0.0).fields())
 
 
+def cost_levels_for(s: CipSettings, turn: int) -> list:
+    """The cost levels [K/kW] a window runs: ``cost_levels_per_window`` of ``cost_levels_K_per_kW``,
+    in turn (``turn``: the window's place among the analysed windows, ``ChainState.cost_turn``)."""
+    L = list(s.cost_levels_K_per_kW)
+    k = min(s.cost_levels_per_window, len(L))
+    return sorted({L[(turn * k + j) % len(L)] for j in range(k)})
+
+
 def forecast_window(fs: ForecastState, s: CipSettings, *, start_s: float, end_s: float, R: float,
                     R_se: float, CF: float, CF_se: float, runs: LevelRuns | None,
                     V_source_m3_per_h: float, dp_clean_bar: float) -> WindowForecast:
@@ -768,7 +771,8 @@ def explain(wf: WindowForecast, s: CipSettings) -> list[str]:
         return out
     rem = a.removal
     share = (f"{100 * rem.share:.0f} % of R_th,f ("
-             + (f"learned from {rem.n} CIP(s)" if rem.source == "plant" else "configured") + ")")
+             + (f"learned from {rem.n} CIP(s): the forecast's levels before and after each"
+                if rem.source == "plant" else "configured") + ")")
     if not plan.pays:
         out.append(f"cleaning does not pay for itself at these prices: a CIP costs {wf.cip_cost_eur:.0f} EUR "
                    f"(direct {s.cip_direct_cost_eur:.0f} EUR, {s.cip_downtime_h:g} h of heat replaced at "

@@ -244,7 +244,6 @@ class WindowPartial:
     cond_factor: float | None = None
     draft: AdviceDraft | None = None            # the advice up to its dead band
     adaptive: PlantParams | None = None         # the window's adaptive model (calibration succeeded)
-    cost_in: pd.DataFrame | None = None         # the window's inputs as the cost of fouling runs them
     der: pd.DataFrame | None = None             # the measured side
     ev_rows: pd.DataFrame | None = None         # the advice's representative rows and weights
     ev_w: np.ndarray | None = None
@@ -592,7 +591,7 @@ class AnalysisChain:
             adv_in = der.copy()
             t_out = adv_in["T_source_out"].to_numpy(dtype=float)
             adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, task.T_out_sp_C), t_out)
-        out.adaptive, out.cost_in, out.der = adaptive, adv_in, der     # pass 3: forecast, tracker
+        out.adaptive, out.der = adaptive, der     # pass 3: forecast, tracker
         # ---- advice up to its dead band
         if self.s.optimize:
             measured = None
@@ -640,7 +639,7 @@ class AnalysisChain:
         if partial.cond_factor is not None:
             state.cond_factor = partial.cond_factor
         # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
-        if self.s.cip.enabled and partial.adaptive is not None:
+        if self.s.cip.enabled and partial.cost_runs is not None:
             self._forecast(res, partial, state)
         if partial.draft is not None and res.ok:
             used = partial.surrogate
@@ -680,7 +679,8 @@ class AnalysisChain:
         speed limit is part of the cost); each row starts from the nearest of the advice's
         solutions. In pass 2, so that a replay answers the calls of the windows in lockstep
         together. {"levels": [K/kW], "frames": [DataFrame per level], "rows", "w", "seconds",
-        "cpu_seconds"}."""
+        "cpu_seconds"} (the times: the gateway's, one window at a time; in a replay's lockstep they
+        include the other windows' turns)."""
         t0, c0 = time.perf_counter(), time.thread_time()
         c = self.s.cip
         R = res.R_th_f_K_per_kW
@@ -708,8 +708,6 @@ class AnalysisChain:
         der, fixed = partial.der, state.fixed
         R = res.R_th_f_K_per_kW
         cr = partial.cost_runs
-        if cr is None:           # a partial made without the cip settings on: run the levels now
-            cr = self._cost_runs(res, partial.cost_in, partial.adaptive, partial.seed, state.cost_turn)
         levels, frames, rows, w = cr["levels"], cr["frames"], cr["rows"], cr["w"]
         cols = COST_COLUMNS
         keep = np.logical_and.reduce([solved_mask(f) for f in frames])

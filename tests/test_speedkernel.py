@@ -26,8 +26,7 @@ pytest.importorskip("numba", reason="the compiled speed search needs numba (the 
 @pytest.fixture(scope="module")
 def kernel():
     assert speedkernel.enable(), "numba is installed but the speed kernel did not compile"
-    yield
-    # leave the process as it was found only if the kernel was off before (other tests expect either)
+    yield       # it stays on for the rest of the session, as after any replay: numpy's numbers
 
 
 def _both(fn):

@@ -164,12 +164,6 @@ def enable() -> bool:
     return True
 
 
-def disable() -> None:
-    """Back to the numpy search (tests)."""
-    global _KERNEL
-    _KERNEL = None
-
-
 def active() -> bool:
     return _KERNEL is not None
 

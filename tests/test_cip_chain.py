@@ -256,6 +256,40 @@ def test_cost_levels_turn_with_every_analysed_window_and_the_post_reset_level_is
     assert checked >= 2
 
 
+def test_a_cost_level_the_model_cannot_run_is_dropped_not_the_window(plant):
+    """A cost level at which the window's operating points do not solve (50e-3 K/kW: the evaporator
+    fouled far past anything the compressors can hold) leaves the window's runs; the window is
+    still priced from its other levels, as by hand from R_th,f 0 and its own level."""
+    from model.analysis.chain import AnalysisChain, ChainSettings
+    from model.batch import simulate_batch, solved_mask
+    from model.calibration import spec_from_config
+    from simulator.synthetic import Noise, Operation, Truth, generate
+
+    c = CipSettings(electricity_price_eur_per_MWh=120.0, replacement_heat_eur_per_MWh=60.0,
+                    cost_levels_K_per_kW=(2e-3, 50e-3), cost_levels_per_window=2)
+    h = generate(plant, Operation(hours=2.2, commissioning_minutes=0), Truth(), Noise(), seed=5).history
+    chain = AnalysisChain(plant, spec_from_config(plant.extra, "fouling"),
+                          ChainSettings(optimize=False, learn_compressors=False, cip=c))
+    state = chain.new_state(None, None)
+    res = chain.window(h.iloc[20:140], state)
+    assert res.ok, res.status
+    d = res.detail["cip"]
+    assert d["levels_dropped_K_per_kW"] == [50e-3]
+    assert d["levels_K_per_kW"] == sorted([0.0, 2e-3, res.R_th_f_K_per_kW])
+    rows, w = res.detail["cost_rows"]
+    adaptive = res.detail["adaptive_params"]
+    assert not solved_mask(simulate_batch(rows, adaptive.replace(R_th_f=50e-6), ls_mode="float")).any()
+    cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
+    runs = []
+    for R in (0.0, res.R_th_f_K_per_kW):
+        f = simulate_batch(rows, adaptive.replace(R_th_f=R * 1e-3), columns=cols, ls_mode="float")
+        assert solved_mask(f).all()
+        runs.append(tuple(float(np.sum(w * f[k]) / np.sum(w)) for k in cols))
+    comp = runs[1][1] - runs[1][0] * runs[0][1] / runs[0][0]
+    assert math.isfinite(res.fouling_cost_eur_per_day)
+    assert res.fouling_compressor_kW == pytest.approx(comp, rel=1e-9)
+
+
 # ------------------------------------------------------------------ the registers
 
 def test_registers_carry_the_forecast():

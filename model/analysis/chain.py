@@ -697,7 +697,9 @@ class AnalysisChain:
 
     def _forecast(self, res: WindowResult, partial: WindowPartial, state: ChainState) -> None:
         """Pass 3 of the cost of fouling and the forecast: pass 2's model runs (``_cost_runs``) as
-        the window's ``LevelRuns`` (the plan's cost curve is the cost levels' mean over
+        the window's ``LevelRuns`` on the operating points the model solves at R_th,f 0 and at the
+        window's level (a cost level where one of them fails is left out of the window's runs;
+        before stop 24 it left the window without a cost); the plan's cost curve is the cost levels' mean over
         ``cip.cost_average_hours``; the level after the last reset, for the cost against it, is
         interpolated between the levels run), then ``cip.forecast_window``: the estimates join the
         forecast since the last reset, the window is priced, the cost cumulated and the CIP
@@ -710,7 +712,14 @@ class AnalysisChain:
         cr = partial.cost_runs
         levels, frames, rows, w = cr["levels"], cr["frames"], cr["rows"], cr["w"]
         cols = COST_COLUMNS
-        keep = np.logical_and.reduce([solved_mask(f) for f in frames])
+        # the operating points the model solves at R_th,f 0 and at the window's level (what the cost
+        # needs); a cost level at which one of them fails is dropped, not the window
+        solved = [solved_mask(f) for f in frames]
+        need = [i for i, x in enumerate(levels) if x == 0.0 or x == R]
+        keep = np.logical_and.reduce([solved[i] for i in need])
+        used = [i for i in range(len(levels)) if i in need or solved[i][keep].all()]
+        dropped = [levels[i] for i in range(len(levels)) if i not in used]
+        levels, frames = [levels[i] for i in used], [frames[i] for i in used]
         runs, note = None, ""
         if keep.any():
             ww = w[keep] / w[keep].sum()
@@ -732,6 +741,7 @@ class AnalysisChain:
                              "runs": None if runs is None else {"Q_sink_kW": list(runs.Q_sink_kW),
                                                                  "W_kW": list(runs.W_kW),
                                                                  "Q_source_kW": list(runs.Q_source_kW)},
+                             "levels_dropped_K_per_kW": dropped,
                              "rows_solved": int(keep.sum()), "rows": int(len(keep)),
                              "seconds": cr["seconds"] + time.perf_counter() - t0,
                              "cpu_seconds": cr["cpu_seconds"] + time.thread_time() - c0}

@@ -173,11 +173,25 @@ def test_cost_terms_by_hand_with_lost_capacity():
         LevelRuns([1e-3, 2e-3], [2000, 2010], [430, 440], [1570, 1570])
 
 
+def _runs_by_hand(res) -> list:
+    """(Q_sink, W, Q_source) [kW], weighted means over the window's cost rows, of the adaptive model
+    run by hand at R_th,f 0 and at the window's level (every row must solve)."""
+    from model.batch import simulate_batch, solved_mask
+    rows, w = res.detail["cost_rows"]
+    adaptive = res.detail["adaptive_params"]
+    cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
+    runs = []
+    for R in (0.0, res.R_th_f_K_per_kW):
+        f = simulate_batch(rows, adaptive.replace(R_th_f=R * 1e-3), columns=cols, ls_mode="float")
+        assert solved_mask(f).all()
+        runs.append(tuple(float(np.sum(w * f[c]) / np.sum(w)) for c in cols))
+    return runs
+
+
 def test_chain_cost_closes_against_two_model_runs_by_hand(plant):
     """The chain's fouling cost of a window = the terms of two model runs on its cost rows, at 0 and at
     the window's R_th,f, done here by hand (+ the source pump)."""
     from model.analysis.chain import AnalysisChain, ChainSettings
-    from model.batch import simulate_batch, solved_mask
     from model.calibration import spec_from_config
     from simulator.synthetic import Noise, Operation, Truth, generate
 
@@ -190,14 +204,7 @@ def test_chain_cost_closes_against_two_model_runs_by_hand(plant):
     data = h.iloc[20:140]
     res = chain.window(data, state)
     assert res.ok, res.status
-    rows, w = res.detail["cost_rows"]
-    adaptive = res.detail["adaptive_params"]
-    cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
-    runs = []
-    for R in (0.0, res.R_th_f_K_per_kW):
-        f = simulate_batch(rows, adaptive.replace(R_th_f=R * 1e-3), columns=cols, ls_mode="float")
-        assert solved_mask(f).all()
-        runs.append(tuple(float(np.sum(w * f[c]) / np.sum(w)) for c in cols))
+    runs = _runs_by_hand(res)
     Qr, Wr, Qsr = runs[0]
     Qf, Wf, Qsf = runs[1]
     comp = Wf - Qf * Wr / Qr
@@ -276,15 +283,10 @@ def test_a_cost_level_the_model_cannot_run_is_dropped_not_the_window(plant):
     d = res.detail["cip"]
     assert d["levels_dropped_K_per_kW"] == [50e-3]
     assert d["levels_K_per_kW"] == sorted([0.0, 2e-3, res.R_th_f_K_per_kW])
-    rows, w = res.detail["cost_rows"]
+    rows, _ = res.detail["cost_rows"]
     adaptive = res.detail["adaptive_params"]
     assert not solved_mask(simulate_batch(rows, adaptive.replace(R_th_f=50e-6), ls_mode="float")).any()
-    cols = ("Q_sink_kW", "W_total_kW", "Q_source_kW")
-    runs = []
-    for R in (0.0, res.R_th_f_K_per_kW):
-        f = simulate_batch(rows, adaptive.replace(R_th_f=R * 1e-3), columns=cols, ls_mode="float")
-        assert solved_mask(f).all()
-        runs.append(tuple(float(np.sum(w * f[k]) / np.sum(w)) for k in cols))
+    runs = _runs_by_hand(res)
     comp = runs[1][1] - runs[1][0] * runs[0][1] / runs[0][0]
     assert math.isfinite(res.fouling_cost_eur_per_day)
     assert res.fouling_compressor_kW == pytest.approx(comp, rel=1e-9)

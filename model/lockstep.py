@@ -39,8 +39,13 @@ def request(kwargs: dict):
 
 
 class _Coordinator:
+    """The turns. One lock; each slot and the caller wait on their own condition of it, so a
+    turn wakes only the thread it is given to (not every thread of the chunk)."""
+
     def __init__(self, k: int) -> None:
-        self.cv = threading.Condition()
+        self.lock = threading.Lock()
+        self.slot_cv = [threading.Condition(self.lock) for _ in range(k)]
+        self.caller_cv = threading.Condition(self.lock)
         self.turn = -1                 # the slot that may run now (-1: none)
         self.busy = False              # the slot given the turn has not stopped yet
         self.pending: dict[int, dict] = {}
@@ -49,33 +54,33 @@ class _Coordinator:
 
     # ---- in the threads -----------------------------------------------------------------------
     def ask(self, slot: int, kwargs: dict):
-        with self.cv:
+        with self.lock:
             self.pending[slot] = kwargs
             self.busy = False
-            self.cv.notify_all()
-            self.cv.wait_for(lambda: slot in self.answers and self.turn == slot)
+            self.caller_cv.notify()
+            self.slot_cv[slot].wait_for(lambda: slot in self.answers and self.turn == slot)
             ans = self.answers.pop(slot)
         if isinstance(ans, Failed):
             raise ans.exc
         return ans
 
     def start(self, slot: int) -> None:
-        with self.cv:
-            self.cv.wait_for(lambda: self.turn == slot)
+        with self.lock:
+            self.slot_cv[slot].wait_for(lambda: self.turn == slot)
 
     def done(self, slot: int) -> None:
-        with self.cv:
+        with self.lock:
             self.live.discard(slot)
             self.busy = False
-            self.cv.notify_all()
+            self.caller_cv.notify()
 
     # ---- in the caller ------------------------------------------------------------------------
     def give(self, slot: int) -> None:
         """Let ``slot`` run until it asks or ends."""
-        with self.cv:
+        with self.lock:
             self.turn, self.busy = slot, True
-            self.cv.notify_all()
-            self.cv.wait_for(lambda: not self.busy)
+            self.slot_cv[slot].notify()
+            self.caller_cv.wait_for(lambda: not self.busy)
             self.turn = -1
 
 
@@ -107,7 +112,7 @@ def run(fns: list, answer=None) -> list:
         for slot in first:                    # each live thread runs until it asks or ends
             if slot in co.live:
                 co.give(slot)
-        with co.cv:
+        with co.lock:
             if not co.pending:
                 break
             batch = dict(sorted(co.pending.items()))
@@ -116,7 +121,7 @@ def run(fns: list, answer=None) -> list:
             got = answer(batch)
         except BaseException as exc:          # noqa: BLE001 - every waiting thread gets it
             got = {slot: Failed(exc) for slot in batch}
-        with co.cv:
+        with co.lock:
             co.answers.update(got)
         first = sorted(batch)
     for t in threads:

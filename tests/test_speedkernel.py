@@ -104,6 +104,42 @@ def test_stacked_speeds_equal_the_numpy_search_to_the_bit(plant, kernel):
     _equal(ref, got)
 
 
+def test_stacked_curves_equal_numpy_to_the_bit(plant, kernel):
+    """The compiled stacked curve (``speedkernel.curve``): eta_is and eta_vol of rows of four members
+    (the prior, a fit without grid, learned grids with and without a draw), inside and outside the
+    grids, NaN inputs, with and without per-row curve differences."""
+    learned = learned_params(plant, delta=False)
+    learner, draws = _draw_learner(plant)
+    comps = [plant.comp_HS, learned.comp_HS, learner.compressor("HS"),
+             learner.compressor("HS", delta=draws[2]["HS"])]
+    st = Stacked(comps)
+    k = 5000
+    rng = np.random.default_rng(5)
+    g = rng.integers(0, len(comps), k)
+    _, _, pi, _ = _rows(k, 13)
+    n = rng.uniform(0.2, 1.7, k)
+    n[7:9] = [np.nan, np.inf]
+    calls = []
+    curve = speedkernel.curve
+    d_is = np.zeros((k, 6))
+    d_is[g == 3] = comps[3].delta_is
+    for view in (st.view(g), st.view(g, tuple(d_is.T), tuple(d_is.T[::-1]))):
+        for f in (view.eta_is_v, view.eta_vol_v):
+            with np.errstate(all="ignore"):          # the inf row
+                ref, got = _both(lambda: f(pi, n))
+            np.testing.assert_array_equal(ref, got)
+            assert np.isfinite(got).sum() > 4500
+    # the grids answered rows (not only the global curves), and the kernel ran
+    inside = st.t_is.value_v(g, pi, n)[1]
+    assert inside.sum() > 500 and (~inside & np.isfinite(pi) & np.isfinite(n)).sum() > 500
+    speedkernel.curve = lambda *a: calls.append(len(a[2])) or curve(*a)
+    try:
+        st.view(g).eta_is_v(pi, n)
+    finally:
+        speedkernel.curve = curve
+    assert calls == [k]
+
+
 def test_replay_with_the_kernel_gives_the_same_windows(plant, kernel, monkeypatch):
     from model.analysis.replay import replay
     from simulator.synthetic import Noise, Operation, Truth, generate

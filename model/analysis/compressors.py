@@ -586,12 +586,18 @@ class LocalCurves:
         self.global_coef = global_coef
         self.ok = bool(self.valid.any())
 
-    def _fast(self) -> None:
-        """Nested lists of every node's coefficients (the global curve where a node has no local
-        fit): the curves are evaluated millions of times per replay, in plain floats."""
+    def _arrays(self) -> None:
+        """Every node's coefficients as one array (the global curve where a node has no local fit)."""
         c = np.where(self.valid[:, :, None], self.coef, np.asarray(self.global_coef)[None, None, :])
-        self._c = c.tolist()
+        self._ca = np.ascontiguousarray(c, dtype=float)
         self._ni, self._nj = c.shape[0] - 1, c.shape[1] - 1
+
+    def _fast(self) -> None:
+        """The same as nested lists, for the scalar path: the curves are evaluated millions of times
+        per replay, in plain floats."""
+        if "_ca" not in self.__dict__:
+            self._arrays()
+        self._c = self._ca.tolist()
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -639,9 +645,7 @@ class LocalCurves:
             self._ca = np.zeros((2, 2, 6))
             return np.zeros(pi.shape, dtype=bool), z, z, pi * 0.0, pi * 0.0, pi * 0.0, pi * 0.0
         if "_ca" not in self.__dict__:
-            if "_c" not in self.__dict__:
-                self._fast()
-            self._ca = np.asarray(self._c, dtype=float)
+            self._arrays()
         pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
         fin = np.isfinite(pi) & np.isfinite(n)
         x = (np.where(fin, pi, self.p0) - self.p0) / self.dpi

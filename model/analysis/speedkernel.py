@@ -19,7 +19,8 @@ import math
 
 import numpy as np
 
-_KERNEL = None          # the compiled function once ``enable`` succeeded
+_KERNEL = None          # the compiled search once ``enable`` succeeded: every kernel's switch
+_CURVE = None           # the compiled stacked curve (set with _KERNEL)
 _TRIED = False
 
 
@@ -139,10 +140,53 @@ def _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0, dn, p, nn, left, c0, c1, c2, c3
     return v * nn, v + nn * d
 
 
+def _curve_rows(C, g, pi, n, has_tab, ca, p0, dpi, ni, nj, ok, n0g, dng, has_dl, DL,
+                z0, z1, z2, z3, out):
+    """Row by row ``stacked._View._curve``: the global curve of the row's member g (C (members, 6)),
+    where the member's local grid covers (pi, n) its blend (``_Tables.value_v``), plus the row's
+    curve difference DL (rows, 6) when has_dl."""
+    for r in range(pi.shape[0]):
+        m = g[r]
+        p = pi[r]
+        q = n[r]
+        v = C[m, 0] + C[m, 1] * p + C[m, 2] * q + C[m, 3] * p * p + C[m, 4] * p * q + C[m, 5] * q * q
+        if has_tab:
+            fin = math.isfinite(p) and math.isfinite(q)
+            x = ((p if fin else p0[m]) - p0[m]) / dpi[m]
+            y = ((q if fin else n0g[m]) - n0g[m]) / dng[m]
+            i = np.floor(x)
+            j = np.floor(y)
+            if fin and i >= 0 and i < ni[m] and j >= 0 and j < nj[m] and ok[m]:
+                fx = x - i
+                fy = y - j
+                ii = int(i)
+                jj = int(j)
+                zp = (p - z0) / z1
+                zn = (q - z2) / z3
+                pp = zp * zp
+                pn = zp * zn
+                nn = zn * zn
+                k = ca[m, ii, jj]
+                v0 = k[0] + k[1] * zp + k[2] * zn + k[3] * pp + k[4] * pn + k[5] * nn
+                k = ca[m, ii + 1, jj]
+                v1 = k[0] + k[1] * zp + k[2] * zn + k[3] * pp + k[4] * pn + k[5] * nn
+                k = ca[m, ii, jj + 1]
+                v2 = k[0] + k[1] * zp + k[2] * zn + k[3] * pp + k[4] * pn + k[5] * nn
+                k = ca[m, ii + 1, jj + 1]
+                v3 = k[0] + k[1] * zp + k[2] * zn + k[3] * pp + k[4] * pn + k[5] * nn
+                v = ((1 - fy) * ((1 - fx) * v0 + fx * v1)) + (fy * ((1 - fx) * v2 + fx * v3))
+        if has_dl:
+            zp = (p - z0) / z1
+            zn = (q - z2) / z3
+            v = v + (DL[r, 0] + DL[r, 1] * zp + DL[r, 2] * zn + DL[r, 3] * zp * zp + DL[r, 4] * zp * zn
+                     + DL[r, 5] * zn * zn)
+        out[r] = v
+
+
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _TRIED
+    global _KERNEL, _CURVE, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -156,10 +200,10 @@ def enable() -> bool:
         glb = dict(_search.__globals__)
         glb["_phi"] = phi
         search = type(_search)(_search.__code__, glb, _search.__name__)
-        _KERNEL = jit(search)
+        _KERNEL, _CURVE = jit(search), jit(_curve_rows)
         _probe()
     except Exception:            # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = None
+        _KERNEL = _CURVE = None
         return False
     return True
 
@@ -175,6 +219,9 @@ def _probe() -> None:
          np.zeros(1, dtype=bool), np.zeros(1), np.ones(1)), np.zeros(1, dtype=np.intp),
         tuple(np.zeros(1) + k for k in (0.5, 0.0, 0.3, 0.0, 0.0, 0.0)), None,
         np.array([0.5]), np.array([2.0]), None, 0.5, 1.5)
+    z1 = np.zeros(1)
+    curve(np.zeros((1, 6)), np.zeros(1, dtype=np.intp), z1, z1, (z, z1, z1 + 1, np.zeros(1, dtype=np.intp),
+          np.zeros(1, dtype=np.intp), np.zeros(1, dtype=bool), z1, z1 + 1), None)
 
 
 def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
@@ -201,3 +248,31 @@ def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
             dl is not None, target, pi, ns, n0 is not None, float(n_lo), float(n_hi),
             float(_Z[0]), float(_Z[1]), float(_Z[2]), float(_Z[3]), float(SPEED_STEP_TOL), n_out, ev_out)
     return n_out, ev_out
+
+
+def curve(C, g, pi, n, tables: tuple | None, dl) -> np.ndarray:
+    """``stacked._View._curve`` with the compiled kernel: C (members, 6) the global curves, g the
+    rows' members, pi and n the rows' (1-D, one per row), ``tables`` the members' local grids
+    (``_Tables.kernel_tables``; None: none), ``dl`` the rows' curve differences (six arrays or
+    None)."""
+    from .compressors import _Z
+    pi = np.ascontiguousarray(pi, dtype=float)
+    n = np.ascontiguousarray(n, dtype=float)
+    rows = pi.shape[0]
+    has_tab = tables is not None
+    if dl is None:
+        DL = np.zeros((1, 6))
+    else:
+        DL = np.empty((rows, 6))
+        for k in range(6):
+            DL[:, k] = dl[k]
+    if tables is None:
+        z = np.zeros(1)
+        tables = (np.zeros((1, 2, 2, 6)), z, z + 1.0, np.zeros(1, dtype=np.intp), np.zeros(1, dtype=np.intp),
+                  np.zeros(1, dtype=bool), z, z + 1.0)
+    ca, p0, dpi, ni, nj, ok, gn0, gdn = tables
+    out = np.empty(rows)
+    _CURVE(np.ascontiguousarray(C, dtype=float), np.ascontiguousarray(g, dtype=np.intp), pi, n,
+           has_tab, ca, p0, dpi, ni, nj, ok, gn0, gdn, dl is not None, DL,
+           float(_Z[0]), float(_Z[1]), float(_Z[2]), float(_Z[3]), out)
+    return out

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..params import Compressor, cubic_speed
+from . import speedkernel
 from .compressors import _Z, LearnedCompressor, local_speed
 
 _SHARED = ("N_nom", "N_min", "N_max", "swept_volume")
@@ -59,6 +60,10 @@ class _Tables:
         self.any = bool(self.ok.any())
         # rows_at's layout: per (member, pi node) the six coefficients of every n node, contiguous
         self.rows6 = np.ascontiguousarray(self.ca.transpose(0, 1, 3, 2)).reshape(G * NI, 6, NJ)
+
+    def kernel_tables(self) -> tuple:
+        """``model.analysis.speedkernel``'s tables of every member."""
+        return self.ca, self.p0, self.dpi, self.ni, self.nj, self.ok, self.n0, self.dn
 
     def value_v(self, g, pi, n) -> tuple[np.ndarray, np.ndarray]:
         """``LocalCurves.value_v`` of each row's own grid (g: the rows' compressors)."""
@@ -113,8 +118,7 @@ class _RowGrids:
 
     def kernel_tables(self, rows: int) -> tuple:
         """``model.analysis.speedkernel``'s tables (every member) and the rows' members."""
-        t = self.t
-        return (t.ca, t.p0, t.dpi, t.ni, t.nj, t.ok, t.n0, t.dn), self.g
+        return self.t.kernel_tables(), self.g
 
     def value_dn_rows(self, Q, inside_pi, rows, n, left=None):
         n0, dn = self.n0[rows], self.dn[rows]
@@ -174,6 +178,9 @@ class _View:
 
     def _curve(self, C, tables: _Tables, delta, pi, n):
         pi, n = np.broadcast_arrays(np.asarray(pi, dtype=float), np.asarray(n, dtype=float))
+        if speedkernel._KERNEL is not None and pi.ndim == 1 and self.g.shape == pi.shape:
+            # compiled (replay): the same operations row by row, the same numbers to the bit
+            return speedkernel.curve(C, self.g, pi, n, tables.kernel_tables() if tables.any else None, delta)
         c = C[self.g]
         v = c[:, 0] + c[:, 1] * pi + c[:, 2] * n + c[:, 3] * pi * pi + c[:, 4] * pi * n + c[:, 5] * n * n
         if tables.any:

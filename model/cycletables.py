@@ -37,6 +37,7 @@ import threading
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from .analysis import speedkernel as _kernels
 from .fluid import Fluid
 from .heap import release_heap
 
@@ -348,8 +349,11 @@ class CycleTables:
         return i * (self._liq_nd - 1), (x - i)[:, None]
 
     def liq_raw(self, row, d):
-        """(h, dh/dT at constant pressure) of the liquid at subcooling d [K] (``liq_row``'s T_c)."""
+        """(h, dh/dT at constant pressure) of the liquid at subcooling d [K] (``liq_row``'s T_c).
+        Compiled in a replay (``model.analysis.speedkernel``: the same numbers to the bit)."""
         base, tx = row
+        if _kernels._KERNEL is not None and np.ndim(d) == 1 and np.shape(base) == np.shape(d):
+            return _kernels.liq(self._liq, base, tx, d, self._liq_d0, 1.0 / LIQ_DD, -1.0 / LIQ_DD)
         y = (d - self._liq_d0) * (1.0 / LIQ_DD)
         # a row whose subcooling is not a number (a failed trial upstream) reads node 0 and comes
         # back NaN: an integer cast of NaN is an arbitrary index

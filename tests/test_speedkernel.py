@@ -102,6 +102,20 @@ def test_stacked_speeds_equal_the_numpy_search_to_the_bit(plant, kernel):
     assert np.isfinite(got[0][g == 1]).sum() > 500
     ref, got = _both(lambda: st.view(g).speed_for_flow_v(m, rho, pi))
     _equal(ref, got)
+    # members all on learned grids: the view hands every row to the kernel at once
+    grids = Stacked(comps[2:])
+    g2 = (g % 2).astype(np.intp)
+    calls = []
+    run = speedkernel.run
+    speedkernel.run = lambda *a: calls.append(len(a[4])) or run(*a)
+    try:
+        for d in (None, tuple((d_vol * (g == 3)[:, None]).T)):
+            ref, got = _both(lambda: grids.view(g2, None, d).speed_for_flow_v(m, rho, pi, n0))
+            _equal(ref, got)
+            assert np.isfinite(got[0]).sum() > 3000
+    finally:
+        speedkernel.run = run
+    assert calls == [k, k]
 
 
 def test_stacked_curves_equal_numpy_to_the_bit(plant, kernel):
@@ -138,6 +152,28 @@ def test_stacked_curves_equal_numpy_to_the_bit(plant, kernel):
     finally:
         speedkernel.curve = curve
     assert calls == [k]
+
+
+def test_liquid_table_equals_numpy_to_the_bit(kernel):
+    """The compiled liquid table (``CycleTables.liq_raw``, the subcooler's inner loop): h and dh/dT
+    over the table's range of T_c and subcooling, NaN and inf subcooling, node lines."""
+    from model.cycletables import LIQ_D_MAX, T_RANGE, get_cycle_tables
+    tab = get_cycle_tables()
+    rng = np.random.default_rng(8)
+    k = 6000
+    T_c = rng.uniform(T_RANGE[0], T_RANGE[1] - 1e-9, k)
+    d = rng.uniform(0.0, LIQ_D_MAX, k)
+    d[:4] = [np.nan, np.inf, 0.0, 0.5]
+    T_c[10:20] = np.round(T_c[10:20])               # on the table's T nodes
+    calls = []
+    liq = speedkernel.liq
+    speedkernel.liq = lambda *a: calls.append(len(a[3])) or liq(*a)
+    try:
+        ref, got = _both(lambda: tab.liq_raw(tab.liq_row(T_c), d))
+    finally:
+        speedkernel.liq = liq
+    _equal(ref, got)
+    assert calls == [k] and np.isfinite(got[0]).sum() == k - 2 and np.isnan(got[0][:2]).all()
 
 
 def test_replay_with_the_kernel_gives_the_same_windows(plant, kernel, monkeypatch):

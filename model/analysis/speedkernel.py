@@ -21,6 +21,7 @@ import numpy as np
 
 _KERNEL = None          # the compiled search once ``enable`` succeeded: every kernel's switch
 _CURVE = None           # the compiled stacked curve (set with _KERNEL)
+_LIQ = None             # the compiled liquid table (set with _KERNEL)
 _TRIED = False
 
 
@@ -183,10 +184,36 @@ def _curve_rows(C, g, pi, n, has_tab, ca, p0, dpi, ni, nj, ok, n0g, dng, has_dl,
         out[r] = v
 
 
+def _liq_rows(C, base, tx, d, d0, inv_dd, dscale, h_out, dh_out):
+    """Row by row ``CycleTables.liq_raw``: the liquid table's bicubic C (cells, 16) at the rows' T_c
+    cell offsets ``base`` and unit coordinates ``tx`` and subcooling d."""
+    ncell = C.shape[0]
+    for r in range(d.shape[0]):
+        y = (d[r] - d0) * inv_dd
+        if math.isfinite(y):
+            j = int(y)
+        else:
+            y = np.nan
+            j = 0
+        k = base[r] + j
+        if k < -ncell or k >= ncell:
+            raise IndexError("liquid table index out of bounds")
+        if k < 0:
+            k += ncell
+        x = tx[r]
+        a0 = ((C[k, 0] * x + C[k, 4]) * x + C[k, 8]) * x + C[k, 12]
+        a1 = ((C[k, 1] * x + C[k, 5]) * x + C[k, 9]) * x + C[k, 13]
+        a2 = ((C[k, 2] * x + C[k, 6]) * x + C[k, 10]) * x + C[k, 14]
+        a3 = ((C[k, 3] * x + C[k, 7]) * x + C[k, 11]) * x + C[k, 15]
+        t = y - j
+        h_out[r] = ((a0 * t + a1) * t + a2) * t + a3
+        dh_out[r] = ((3.0 * a0 * t + 2.0 * a1) * t + a2) * dscale
+
+
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -200,10 +227,10 @@ def enable() -> bool:
         glb = dict(_search.__globals__)
         glb["_phi"] = phi
         search = type(_search)(_search.__code__, glb, _search.__name__)
-        _KERNEL, _CURVE = jit(search), jit(_curve_rows)
+        _KERNEL, _CURVE, _LIQ = jit(search), jit(_curve_rows), jit(_liq_rows)
         _probe()
     except Exception:            # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = None
+        _KERNEL = _CURVE = _LIQ = None
         return False
     return True
 
@@ -222,6 +249,7 @@ def _probe() -> None:
     z1 = np.zeros(1)
     curve(np.zeros((1, 6)), np.zeros(1, dtype=np.intp), z1, z1, (z, z1, z1 + 1, np.zeros(1, dtype=np.intp),
           np.zeros(1, dtype=np.intp), np.zeros(1, dtype=bool), z1, z1 + 1), None)
+    liq(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), z1, 0.0, 2.0, -2.0)
 
 
 def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
@@ -276,3 +304,13 @@ def curve(C, g, pi, n, tables: tuple | None, dl) -> np.ndarray:
            has_tab, ca, p0, dpi, ni, nj, ok, gn0, gdn, dl is not None, DL,
            float(_Z[0]), float(_Z[1]), float(_Z[2]), float(_Z[3]), out)
     return out
+
+
+def liq(C, base, tx, d, d0: float, inv_dd: float, dscale: float):
+    """``CycleTables.liq_raw`` with the compiled kernel: (h, dh/dT) at subcooling d of the rows
+    (``liq_row``'s base offsets and (rows, 1) unit coordinates tx)."""
+    d = np.ascontiguousarray(d, dtype=float)
+    h, dh = np.empty(d.shape[0]), np.empty(d.shape[0])
+    _LIQ(C, np.ascontiguousarray(base, dtype=np.intp), np.ascontiguousarray(tx[:, 0], dtype=float), d,
+         float(d0), float(inv_dd), float(dscale), h, dh)
+    return h, dh

@@ -28,6 +28,17 @@ VECTORISED = True
 
 INPUT_COLUMNS = ("T_source_in", "T_source_out", "T_sink_in", "V_source", "V_sink", "p_m_sp")
 SOLVED_WITH_FLAG = ("ls_speed_high", "ls_speed_low", "negative_pinch")
+
+
+def numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
+    """``df[columns].apply(pd.to_numeric, errors="coerce")``: the columns as numbers (NaN where
+    not), on ``df``'s index; column by column without ``DataFrame.apply``'s machinery (the
+    windows' hot path), the same frame."""
+    columns = list(columns)
+    if not len(df):
+        return df[columns].apply(pd.to_numeric, errors="coerce")
+    return pd.DataFrame({c: pd.to_numeric(df[c], errors="coerce") for c in columns}, index=df.index,
+                        columns=columns)
 OUTPUT_KEYS = (
     "p_e_bar", "p_m_bar", "p_c_bar", "p_m_barg", "T_e_C", "T_m_C", "T_c_C", "N_LS_rpm", "N_HS_rpm",
     "Q_sink_kW", "Q_source_kW", "W_LS_kW", "W_HS_kW", "W_total_kW", "COP", "T_sink_out_C",

@@ -35,7 +35,7 @@ import pandas as pd
 from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
 
-from .batch import INPUT_COLUMNS, SOLVED_WITH_FLAG, simulate_batch
+from .batch import INPUT_COLUMNS, SOLVED_WITH_FLAG, numeric, simulate_batch
 from .fluid import get_fluid
 from .params import PlantParams
 from .units import BAR, M3H, T0
@@ -405,7 +405,7 @@ def calibration_frame(raw: pd.DataFrame, processed: pd.DataFrame, mask=None) -> 
     use = processed["usable"].to_numpy(dtype=bool, copy=True)
     if mask is not None:
         use &= np.asarray(mask, dtype=bool)
-    inputs = raw.loc[use, list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce")
+    inputs = numeric(raw.loc[use], INPUT_COLUMNS)
     meas = processed.loc[use, sorted({m for m, _ in TARGETS.values()} & set(processed.columns))]
     return pd.concat([inputs, meas], axis=1)
 
@@ -425,7 +425,7 @@ class _Problem:
             raise CalibrationError(f"{spec.kind} calibration: columns missing from the window: "
                                    f"{', '.join(sorted(set(missing)))}")
         cols = list(INPUT_COLUMNS) + sorted({TARGETS[g.target][0] for g in spec.goals})
-        d = data[cols].apply(pd.to_numeric, errors="coerce")
+        d = numeric(data, cols)
         finite = np.isfinite(d.to_numpy(dtype=float)).all(axis=1)
         if (~finite).sum():
             self.dropped["missing value"] = int((~finite).sum())

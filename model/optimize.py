@@ -654,7 +654,7 @@ def optimize_setpoint(data: pd.DataFrame, params: PlantParams, coarse_step: floa
     if missing:
         raise OptimizationError(f"window lacks input columns: {', '.join(missing)}")
     amb = params.ambient_pressure / 1e5
-    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    data = batch.numeric(data, INPUT_COLUMNS).reset_index(drop=True)
     full = Evaluator(data, np.ones(len(data)), params)
     ref = full.at(None)
     ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
@@ -698,7 +698,7 @@ def sweep(data: pd.DataFrame, params: PlantParams, step: float = 0.05,
           bounds_barg: tuple[float, float] | None = None) -> pd.DataFrame:
     """Brute-force period COP over set points (for checks): columns p_m_sp_barg, COP, Q_sink_kW."""
     amb = params.ambient_pressure / 1e5
-    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    data = batch.numeric(data, INPUT_COLUMNS).reset_index(drop=True)
     ev = Evaluator(data, np.ones(len(data)), params)
     ref = ev.at(None)
     ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)

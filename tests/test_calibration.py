@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.optimize import minimize_scalar
 
@@ -306,3 +307,20 @@ def test_statefiles_atomic_roundtrip(tmp_path):
         read_state(FOULING_CALIBRATION, tmp_path)
     with pytest.raises(StateError, match="invalid state document name"):
         write_state("../evil.json", {}, tmp_path)
+
+
+def test_numeric_columns_are_dataframe_apply_to_numeric():
+    """``model.batch.numeric`` (the windows' inputs as numbers) gives the frame that
+    ``df[cols].apply(pd.to_numeric, errors="coerce")`` gives: values, NaN for text, dtypes, index,
+    column order; an empty frame too."""
+    from model.batch import numeric
+    df = pd.DataFrame({"a": [1.5, 2.0, np.nan], "b": ["3", "x", "4.25"], "c": [1, 2, 3],
+                       "d": [True, False, True]}, index=[7, 3, 9])
+    for cols in (["b", "a", "c"], ["c"], ["a", "d"]):
+        ref = df[cols].apply(pd.to_numeric, errors="coerce")
+        got = numeric(df, cols)
+        pd.testing.assert_frame_equal(got, ref, check_exact=True)
+    assert got.columns.tolist() == ["a", "d"] and got.index.tolist() == [7, 3, 9]
+    pd.testing.assert_frame_equal(numeric(df.iloc[:0], ["a", "b"]),
+                                  df.iloc[:0][["a", "b"]].apply(pd.to_numeric, errors="coerce"))
+    assert np.isnan(numeric(df, ["b"])["b"].iloc[1])

@@ -569,3 +569,22 @@ def test_per_row_fouling_and_condenser_factor_equal_separate_calls(plant, ls_mod
                 a, b = part[c].to_numpy()[both], ref[c].to_numpy()[both]
                 tol = 1e-9 if frame is got else AGREE_REL
                 assert np.all(np.abs(a - b) <= tol * np.abs(b)), (c, r, f)
+
+
+def test_learner_eta_is_for_arrays_is_the_scalar_curve_to_the_bit(plant):
+    """``CompressorLearner.eta_is`` (the windows' residuals and samples.csv's model eta_is) answers
+    arrays with the compressor's vectorised curve: the scalar ``eta_is_at``'s numbers to the bit,
+    on the local grid, beyond it (the global curve) and on its node lines."""
+    learner, _ = _draw_learner(plant)
+    rng = np.random.default_rng(21)
+    for st in ("LS", "HS"):
+        comp = learner.compressor(st)
+        assert comp.local_is is not None and comp.local_is.ok
+        pi = np.concatenate([rng.normal(2.2, 0.6, 3000), comp.local_is.p0 + comp.local_is.dpi * np.arange(5)])
+        n = np.concatenate([rng.normal(1.0, 0.3, 3000), comp.local_is.n0 + comp.local_is.dn * np.arange(5)])
+        got = learner.eta_is(st, pi, n)
+        ref = np.array([comp.eta_is_at(a, b) for a, b in zip(pi, n)])
+        np.testing.assert_array_equal(got, ref)
+        inside = comp.local_is.value_v(pi, n)[1]
+        assert 500 < inside.sum() < len(pi) - 500
+    assert learner.eta_is("LS", 2.4, 1.05).shape == (1,)

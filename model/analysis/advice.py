@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from .. import batch
-from ..batch import INPUT_COLUMNS
+from ..batch import INPUT_COLUMNS, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
                         representative, search, window_range)
 from ..params import PlantParams
@@ -434,7 +434,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
     the representative points from."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
-    data = data[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+    data = numeric(data, INPUT_COLUMNS).reset_index(drop=True)
     # the window's actual set point: the mean over all its samples (as windows.csv reports it; a
     # window in which the set point changed must not get a third value from the check rows)
     actual = float(data["p_m_sp"].mean())

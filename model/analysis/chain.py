@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import pandas as pd
 
-from ..batch import INPUT_COLUMNS, simulate_batch, simulate_many, solved_mask
+from ..batch import INPUT_COLUMNS, numeric, simulate_batch, simulate_many, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
@@ -662,7 +662,7 @@ class AnalysisChain:
 
     def _evaluation_rows(self, adv_in: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
         """The window's representative rows and weights, as the advice evaluates them."""
-        data = adv_in[list(INPUT_COLUMNS)].apply(pd.to_numeric, errors="coerce").reset_index(drop=True)
+        data = numeric(adv_in, INPUT_COLUMNS).reset_index(drop=True)
         k = int(self.s.advice.check_rows)
         keep = np.unique(np.linspace(0, len(data) - 1, min(k, len(data))).round().astype(int))
         data = data.iloc[keep].reset_index(drop=True)

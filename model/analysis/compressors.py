@@ -1212,8 +1212,10 @@ class CompressorLearner:
         return np.where(np.isfinite(q).all(axis=1), d, np.inf)
 
     def eta_is(self, stage: str, pi, n) -> np.ndarray:
-        comp = self.compressor(stage)
-        return np.array([comp.eta_is_at(a, b) for a, b in zip(np.atleast_1d(pi), np.atleast_1d(n))])
+        """The stage's learned eta_is at the points (pi, n): ``eta_is_at``'s numbers, for arrays."""
+        pi, n = np.broadcast_arrays(np.atleast_1d(np.asarray(pi, dtype=float)),
+                                    np.atleast_1d(np.asarray(n, dtype=float)))
+        return np.asarray(self.compressor(stage).eta_is_v(pi, n), dtype=float)
 
     def drift_pct(self, stage: str, pi: float, n: float) -> float:
         """eta_is now minus at commissioning at (pi, n), in percentage points; NaN when there is no

@@ -196,7 +196,7 @@ def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
     if missing:
         raise KeyError(f"input columns missing: {', '.join(missing)}")
     n = len(rows)
-    cols = {c: np.asarray(rows[c], dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
+    cols = {c: rows[c].to_numpy(dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
     if p_m_sp is not None:
         cols["p_m_sp"] = np.broadcast_to(np.asarray(p_m_sp, dtype=float), (n,)).copy()
     return cols

@@ -39,49 +39,43 @@ def request(kwargs: dict):
 
 
 class _Coordinator:
-    """The turns. One lock; each slot and the caller wait on their own condition of it, so a
-    turn wakes only the thread it is given to (not every thread of the chunk)."""
+    """The turns, handed over like a baton: each slot waits on its own lock (held while it may not
+    run) and the caller on one more, so a turn wakes exactly the thread it is given to. Only one
+    thread runs at a time, so the shared dicts need no lock of their own (each hand-over orders
+    the memory accesses before it)."""
 
     def __init__(self, k: int) -> None:
-        self.lock = threading.Lock()
-        self.slot_cv = [threading.Condition(self.lock) for _ in range(k)]
-        self.caller_cv = threading.Condition(self.lock)
-        self.turn = -1                 # the slot that may run now (-1: none)
-        self.busy = False              # the slot given the turn has not stopped yet
+        self.go = [threading.Lock() for _ in range(k)]
+        for g in self.go:
+            g.acquire()
+        self.back = threading.Lock()
+        self.back.acquire()
         self.pending: dict[int, dict] = {}
         self.answers: dict[int, object] = {}
         self.live = set(range(k))
 
     # ---- in the threads -----------------------------------------------------------------------
     def ask(self, slot: int, kwargs: dict):
-        with self.lock:
-            self.pending[slot] = kwargs
-            self.busy = False
-            self.caller_cv.notify()
-            self.slot_cv[slot].wait_for(lambda: slot in self.answers and self.turn == slot)
-            ans = self.answers.pop(slot)
+        self.pending[slot] = kwargs
+        self.back.release()                 # the caller's turn
+        self.go[slot].acquire()             # until the caller gives this slot its turn again
+        ans = self.answers.pop(slot)
         if isinstance(ans, Failed):
             raise ans.exc
         return ans
 
     def start(self, slot: int) -> None:
-        with self.lock:
-            self.slot_cv[slot].wait_for(lambda: self.turn == slot)
+        self.go[slot].acquire()
 
     def done(self, slot: int) -> None:
-        with self.lock:
-            self.live.discard(slot)
-            self.busy = False
-            self.caller_cv.notify()
+        self.live.discard(slot)
+        self.back.release()
 
     # ---- in the caller ------------------------------------------------------------------------
     def give(self, slot: int) -> None:
         """Let ``slot`` run until it asks or ends."""
-        with self.lock:
-            self.turn, self.busy = slot, True
-            self.slot_cv[slot].notify()
-            self.caller_cv.wait_for(lambda: not self.busy)
-            self.turn = -1
+        self.go[slot].release()
+        self.back.acquire()
 
 
 def run(fns: list, answer=None) -> list:
@@ -112,17 +106,15 @@ def run(fns: list, answer=None) -> list:
         for slot in first:                    # each live thread runs until it asks or ends
             if slot in co.live:
                 co.give(slot)
-        with co.lock:
-            if not co.pending:
-                break
-            batch = dict(sorted(co.pending.items()))
-            co.pending.clear()
+        if not co.pending:
+            break
+        batch = dict(sorted(co.pending.items()))
+        co.pending.clear()
         try:
             got = answer(batch)
         except BaseException as exc:          # noqa: BLE001 - every waiting thread gets it
             got = {slot: Failed(exc) for slot in batch}
-        with co.lock:
-            co.answers.update(got)
+        co.answers.update(got)
         first = sorted(batch)
     for t in threads:
         t.join()

@@ -57,6 +57,26 @@ def test_both_forms_qualify_on_a_function_of_their_inputs():
     assert abs(pred["p_m_opt_bar_a"] - pm) < 1e-6 and abs(pred["dCOP_pct"] - dc) < 1e-6
 
 
+def test_a_windows_copy_predicts_as_the_tracker_without_its_rows():
+    """``for_window``: what a window's task carries (a replay pickles one per window) has the
+    fits, the settings and the window count but none of the rows, and answers as the tracker."""
+    tr = SurrogateTracker(TrackerSettings(min_rows=60, refit_every=10_000, qualified_every=3))
+    tr.add(_rows(120, np.random.default_rng(1), _three_inputs))
+    tr.refit()
+    tr._windows = 1
+    view = tr.for_window()
+    assert view.rows == [] and len(tr.rows) == 120
+    assert view.qualified is not None and view.qualified.form == tr.qualified.form
+    x = {"eta_is_product": 0.66, "p_e_bar_a": 3.7, "p_c_bar_a": 42.0, "V_sink_m3h": 85.0,
+         "T_sink_in_C": 47.0}
+    assert view.qualified.predict(x) == tr.qualified.predict(x)
+    assert view.takes_next() == tr.takes_next() is False
+    tr._windows = 2
+    assert view.takes_next() is False and tr.takes_next() is True   # a snapshot
+    tr.refit()                                                      # the tracker refits later
+    assert view.fits and view.fits is not tr.fits
+
+
 def test_the_basic_form_fails_where_the_sink_matters_and_the_extended_one_qualifies():
     tr = SurrogateTracker(TrackerSettings(min_rows=60, refit_every=10_000))
     tr.add(_rows(150, np.random.default_rng(2), _sink_dependent))

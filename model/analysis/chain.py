@@ -437,9 +437,10 @@ class AnalysisChain:
         res = WindowResult(window_start=ts[0].isoformat() if n else "",
                            window_end=ts[-1].isoformat() if n else "",
                            t_end=float(ts[-1].timestamp()) if n else math.nan, n_samples=n)
+        # the surrogate as pass 2 needs it (fits, not the rows: the task may be pickled)
+        tracker = state.tracker.for_window() if self.s.use_surrogate and state.tracker is not None else None
         task = WindowTask(res=res, data=data.assign(timestamp=ts), fixed=state.fixed,
-                          learner=state.learner, samples=samples,
-                          tracker=state.tracker if self.s.use_surrogate else None)
+                          learner=state.learner, samples=samples, tracker=tracker)
         if n < self.s.min_samples:
             res.status = f"skipped: {n} usable samples, {self.s.min_samples} needed"
             task.done = True

@@ -181,6 +181,14 @@ class SurrogateTracker:
         self._since = 0
         self._windows = 0             # windows seen since the last rows were taken
 
+    def for_window(self) -> "SurrogateTracker":
+        """What a window's pass 2 needs of the tracker (``predict_setpoint``, ``takes_next``): the
+        settings, the fits and the window count, without the rows (up to ``max_rows``: a replay
+        pickles a copy into every window's task)."""
+        t = SurrogateTracker(self.s)
+        t.fits, t._since, t._windows = dict(self.fits), self._since, self._windows
+        return t
+
     def takes_next(self) -> bool:
         """Whether the next ``window`` call adds rows (so a caller computes them only then)."""
         return self.s.enabled and (self.qualified is None or self._windows + 1 >= self.s.qualified_every)

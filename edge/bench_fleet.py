@@ -31,6 +31,11 @@ then with ``workers``: speed-up, every plant's windows.csv identical across the 
 an in-process replay for the first ``reference_plants``, the per-window cost and the arithmetic
 extrapolation to 100 plant-years on 16 workers. The machine's load average is recorded: the bench
 machine has 2 cores and other work on them lowers the speed-up.
+
+``plant_year`` (``bench_plant_year``): the fleet's first plant over 365 days (cached in
+var/bench-fleet; generating it takes several minutes the first time) replayed on one core: CPU per
+window by quarter of the year and over the year, and the 100-plant-year arithmetic from that cost
+instead of a month's.
 """
 from __future__ import annotations
 
@@ -329,6 +334,66 @@ def bench_fleet(params=None, plants: int = 8, days: float = 30.0, workers: int =
     return out
 
 
+def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | None = None,
+                     progress=None) -> dict:
+    """One plant-year replayed on one core, in this process, as ``hp-edge replay`` would: the fleet
+    bench's first plant (simulator.export, seed 1, the 'perturbed' compressor family) over ``days``
+    (cached in var/bench-fleet). Checks the fleet bench's arithmetic, which scales a 30-day
+    replay's cost per window to a year: the CPU per window in each quarter of the year (a cost that
+    grew with the history behind a window would show here) and over the whole year."""
+    from edge.io.history import read_history
+    from edge.plantfile import load_plant
+    from model.analysis.replay import ReplaySettings, replay
+    work = Path(work_dir) if work_dir else ROOT / "var" / "bench-fleet"
+    out: dict = {"targets": {"plant_years_100_on_16_workers_min": TARGETS["plant_years_100_on_16_workers_min"]},
+                 "days": days, "load_average_at_start": list(os.getloadavg())}
+    t = time.perf_counter()
+    entry = fleet_histories(work, 1, days, progress)[0]
+    out["history_generation_s"] = time.perf_counter() - t
+    out["plant"] = entry.name
+    params = load_plant(entry.plant)
+    h = read_history(entry.history).frame
+    marks: list[tuple[int, float]] = []
+    c0 = time.process_time()
+
+    def tick(done: int, total: int) -> None:
+        marks.append((done, time.process_time() - c0))
+        if progress is not None and done and done % 500 == 0:
+            progress(f"plant-year: window {done} of {total}")
+
+    t, c = time.perf_counter(), time.process_time()
+    res = replay(h, params, ReplaySettings.from_config(params.extra), progress=tick)
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    n = len(res.windows)
+    # CPU per window in each quarter of the windows (the initial calibration, before the first
+    # window, in none of them); the quarters end on a lockstep chunk's last window (the windows of a
+    # chunk come out together)
+    k = ReplaySettings.from_config(params.extra).lockstep_windows
+    quarters = []
+    cuts = [0] + [min(n, k * round(n * q / 4 / k)) for q in range(1, 4)] + [n]
+    at = dict(marks)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b > a and a in at and b in at:
+            quarters.append((at[b] - at[a]) / (b - a))
+    per_window = cpu / max(n, 1)
+    windows_per_day = n / days
+    year_s = 365.0 * windows_per_day * per_window
+    out.update({"rows": int(len(h)), "windows": n, "windows_ok": int((res.windows["status"] == "ok").sum()),
+                "wall_s": wall, "cpu_s": cpu, "cpu_s_per_window": per_window,
+                "cpu_s_per_window_by_quarter": quarters,
+                "last_to_first_quarter": (quarters[-1] / quarters[0]) if len(quarters) == 4 else None,
+                "speed_kernel": speed_kernel(), "windows_per_plant_day": windows_per_day,
+                "extrapolation": {
+                    "how": "100 plant-years on 16 workers from this plant-year's CPU per window: 100 x 365 x "
+                           "windows per plant-day x CPU-s per window / 16 (windows spread evenly), and "
+                           "ceil(100/16) plant-years in a row per worker (one task per plant)",
+                    "windows_spread_evenly_min": 100 * year_s / 16 / 60.0,
+                    "one_task_per_plant_min": math.ceil(100 / 16) * year_s / 60.0}})
+    out["pass"] = {"plant_years_100_on_16_workers":
+                   out["extrapolation"]["one_task_per_plant_min"] <= TARGETS["plant_years_100_on_16_workers_min"]}
+    return out
+
+
 if __name__ == "__main__":  # pragma: no cover - python -m edge.bench_fleet fleet [PLANTS [DAYS [WORKERS]]]
     import json
     import sys
@@ -339,12 +404,17 @@ if __name__ == "__main__":  # pragma: no cover - python -m edge.bench_fleet flee
             kw[key] = typ(v)
         print(json.dumps(bench_fleet(progress=lambda m: print(m, file=sys.stderr, flush=True), **kw),
                          indent=2, default=float))
+    elif args and args[0] == "year":
+        print(json.dumps(bench_plant_year(days=float(args[1]) if len(args) > 1 else 365.0,
+                                          progress=lambda m: print(m, file=sys.stderr, flush=True)),
+                         indent=2, default=float))
     elif args and args[0] == "replay":
         kw = {}
         for key, v in zip(("days", "ref_days"), args[1:]):
             kw[key] = float(v)
         print(json.dumps(bench_replay(**kw), indent=2, default=float))
     else:
-        print("usage: python -m edge.bench_fleet replay [DAYS [REF_DAYS]] | fleet [PLANTS [DAYS [WORKERS]]]",
+        print("usage: python -m edge.bench_fleet replay [DAYS [REF_DAYS]] | fleet [PLANTS [DAYS [WORKERS]]]"
+              " | year [DAYS]",
               file=sys.stderr)
         sys.exit(2)

@@ -47,7 +47,8 @@ def register(sub) -> None:
                         "and cip: the CIP policies on 120 simulated days, about "
                         "15 min; replay: one 30-day replay on one core against the plain path and a "
                         "full-window reference; fleet: 8 plant-months on a LocalCluster with 1 and 2 "
-                        "workers (needs the [fleet] extra); these run longer)")
+                        "workers (needs the [fleet] extra); plant_year: one plant-year replayed on one core, its "
+                        "cost per window by quarter; these run longer)")
     b.add_argument("--grid-levels", type=int, default=3, help="levels per axis of the validation grid (3)")
     b.add_argument("--out", default=None, help="also write the JSON to this file")
     b.set_defaults(func=cmd_bench)
@@ -151,7 +152,8 @@ def cmd_bench(args) -> int:
              "closed_loop": ("edge.bench_closed_loop", "bench_closed_loop"),
              "cip": ("edge.bench_cip", "bench_cip"),
              "replay": ("edge.bench_fleet", "bench_replay"),
-             "fleet": ("edge.bench_fleet", "bench_fleet")}
+             "fleet": ("edge.bench_fleet", "bench_fleet"),
+             "plant_year": ("edge.bench_fleet", "bench_plant_year")}
     unknown = [s for s in sections if s not in known]
     if unknown:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",
@@ -169,7 +171,7 @@ def cmd_bench(args) -> int:
         elif s == "analysis":
             from edge.config import find_config
             result[s] = func(params, json.loads(find_config("surrogate.json").read_text(encoding="utf-8")))
-        elif s in ("vcycle", "replay", "fleet"):
+        elif s in ("vcycle", "replay", "fleet", "plant_year"):
             result[s] = func(params)
         else:
             result[s] = func()

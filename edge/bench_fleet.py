@@ -334,6 +334,15 @@ def bench_fleet(params=None, plants: int = 8, days: float = 30.0, workers: int =
     return out
 
 
+def _max_rss_mb() -> float | None:
+    """This process's peak resident memory [MB] (None where the platform does not say)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0     # kB on Linux
+
+
 def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | None = None,
                      progress=None) -> dict:
     """One plant-year replayed on one core, in this process, as ``hp-edge replay`` would: the fleet
@@ -383,6 +392,7 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
                 "cpu_s_per_window_by_quarter": quarters,
                 "last_to_first_quarter": (quarters[-1] / quarters[0]) if len(quarters) == 4 else None,
                 "speed_kernel": speed_kernel(), "windows_per_plant_day": windows_per_day,
+                "max_rss_mb": _max_rss_mb(),
                 "extrapolation": {
                     "how": "100 plant-years on 16 workers from this plant-year's CPU per window: 100 x 365 x "
                            "windows per plant-day x CPU-s per window / 16 (windows spread evenly), and "

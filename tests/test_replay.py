@@ -240,3 +240,4 @@ def test_plant_year_bench_runs_and_adds_up(tmp_path):
     assert out["extrapolation"]["one_task_per_plant_min"] == pytest.approx(7 * year_s / 60)
     assert out["extrapolation"]["windows_spread_evenly_min"] == pytest.approx(100 * year_s / 16 / 60)
     assert out["pass"]["plant_years_100_on_16_workers"] is (7 * year_s / 60 <= 10.0)
+    assert out["max_rss_mb"] > 50

@@ -1,17 +1,23 @@
-"""The learned curves' speed search (``compressors.local_speed``) compiled with numba (optional).
+"""Compiled kernels for a replay's hottest arithmetic (numba, optional).
 
-A replay spends about a fifth of its time in this search: for every row of every flowsheet
-evaluation, the LS and HS speed at which the learned volumetric curve passes the stage's mass flow.
-The numpy version works on all rows at once but pays numpy's per-call cost in every Newton step and
-a (rows x speed nodes) table per search; this kernel walks each row on its own (about 4 curve
-evaluations a row).
+- the learned curves' speed search (``compressors.local_speed``): for every row of every flowsheet
+  evaluation, the LS and HS speed at which the learned volumetric curve passes the stage's mass
+  flow. The numpy version works on all rows at once but pays numpy's per-call cost in every Newton
+  step and a (rows x speed nodes) table per search; this kernel walks each row on its own (about 4
+  curve evaluations a row);
+- the stacked compressors' curves (``stacked._View._curve``: eta_is and eta_vol of rows that each
+  name their window's compressor, on its local grid where that covers);
+- the liquid table (``CycleTables.liq_raw``, the subcooler's inner loop).
 
-It computes every row with the same floating-point operations in the same order as the numpy
-version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``), so its numbers are the
-numpy version's to the bit (``tests/test_speedkernel.py``): a replay gives the same results with it
-or without it. numba is an optional extra (``pip install 'hp-edge[fast]'``, also in ``[fleet]``);
-only ``model.analysis.replay`` turns the kernel on (``enable``), so the gateway daemon never
-imports numba. Without numba everything runs on numpy.
+Each computes every row with the same floating-point operations in the same order as the numpy
+version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``; ``_Tables.value_v``;
+the bicubic of ``liq_raw``), so its numbers are the numpy version's to the bit
+(``tests/test_speedkernel.py``): a replay gives the same results with them or without them. Only
+pure arithmetic is compiled: numpy's ``exp``/``log`` (SIMD) differ from libm's in the last bit for
+some arguments, so the flowsheet's other steps stay in numpy. numba is an optional extra
+(``pip install 'hp-edge[fast]'``, also in ``[fleet]``); only ``model.analysis.replay`` turns the
+kernels on (``enable``), so the gateway daemon never imports numba. Without numba everything runs on
+numpy. ``_KERNEL`` is the switch for all of them.
 """
 from __future__ import annotations
 

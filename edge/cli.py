@@ -11,6 +11,16 @@ import importlib
 import os
 import sys
 
+# One BLAS/OpenMP thread in every hp-edge process unless the environment sets another number (set
+# before numpy loads: no command module imports it at import time). The model's matrices are small,
+# so more threads spend more CPU spinning than they save; and a replay here gives the numbers a
+# Dask worker gives (its nanny sets the same), which the fleet's "identical results" rest on: with
+# several threads a large least-squares fit (the surrogate tracker's, thousands of rows late in a
+# plant-year) may round differently.
+BLAS_THREADS_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+for _name in BLAS_THREADS_ENV:
+    os.environ.setdefault(_name, "1")
+
 COMMAND_MODULES = (
     "edge.commands.model_cmds",      # point, bench, fit-compressor
     "edge.commands.sim_cmds",        # simulate

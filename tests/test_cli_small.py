@@ -249,3 +249,20 @@ def test_demo_clips_the_advice_reason_at_a_word():
                                "bar(g) only…")
     assert _clip("short", 90) == "short"
     assert len(_clip("x" * 200, 90)) == 90
+
+
+def test_hp_edge_runs_numpy_on_one_blas_thread_unless_told_otherwise():
+    """edge.cli sets one BLAS/OpenMP thread before numpy loads (the gateway on one core; a replay
+    here gives a Dask worker's numbers); a value in the environment wins."""
+    import subprocess
+    import sys
+    code = ("import os, sys, edge.cli; assert 'numpy' not in sys.modules; "
+            "print(' '.join(os.environ[k] for k in edge.cli.BLAS_THREADS_ENV))")
+    env = {k: v for k, v in __import__("os").environ.items() if k not in
+           ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1", "1", "1"]
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"},
+                         capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["2", "1", "1"]

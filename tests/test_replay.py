@@ -241,3 +241,23 @@ def test_plant_year_bench_runs_and_adds_up(tmp_path):
     assert out["extrapolation"]["windows_spread_evenly_min"] == pytest.approx(100 * year_s / 16 / 60)
     assert out["pass"]["plant_years_100_on_16_workers"] is (7 * year_s / 60 <= 10.0)
     assert out["max_rss_mb"] > 50
+
+
+def test_a_replay_collects_garbage_less_often_and_restores_the_threshold():
+    """``fewer_collections``: the collector's first threshold is GC_THRESHOLD0 inside (never lowered
+    where the process set it higher) and the process's own thresholds after, also after an error."""
+    import gc
+    from model.analysis.replay import GC_THRESHOLD0, fewer_collections
+    old = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 11, 12)
+        with fewer_collections():
+            assert gc.get_threshold() == (GC_THRESHOLD0, 11, 12)
+        assert gc.get_threshold() == (700, 11, 12)
+        gc.set_threshold(50_000, 10, 10)
+        with pytest.raises(ZeroDivisionError), fewer_collections():
+            assert gc.get_threshold() == (50_000, 10, 10)
+            1 / 0
+        assert gc.get_threshold() == (50_000, 10, 10)
+    finally:
+        gc.set_threshold(*old)

@@ -370,14 +370,15 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
         if progress is not None and done and done % 500 == 0:
             progress(f"plant-year: window {done} of {total}")
 
+    settings = ReplaySettings.from_config(params.extra)
     t, c = time.perf_counter(), time.process_time()
-    res = replay(h, params, ReplaySettings.from_config(params.extra), progress=tick)
+    res = replay(h, params, settings, progress=tick)
     wall, cpu = time.perf_counter() - t, time.process_time() - c
     n = len(res.windows)
     # CPU per window in each quarter of the windows (the initial calibration, before the first
     # window, in none of them); the quarters end on a lockstep chunk's last window (the windows of a
     # chunk come out together)
-    k = ReplaySettings.from_config(params.extra).lockstep_windows
+    k = settings.lockstep_windows
     quarters = []
     cuts = [0] + [min(n, k * round(n * q / 4 / k)) for q in range(1, 4)] + [n]
     at = dict(marks)

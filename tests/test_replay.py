@@ -131,6 +131,45 @@ def test_cip_without_flag_is_found_by_the_long_stop(plant, history):
     assert detect_cips(ts, processed, np.zeros(len(h), bool), off_minutes=400) == []
 
 
+def test_windows_are_row_positions_tiling_the_usable_record(plant, history):
+    """``plan_windows`` gives each window as row positions (not a mask over the whole record: a
+    plant-year's masks were 1.9 GB): the usable rows after the initial window in [a, b) of each
+    window's own span, disjoint, in time order; together every usable row outside the CIP and
+    the initial window except those of windows skipped for too few samples. A record whose
+    timestamps are not in order (replay sorts them first) gives the same windows by its masks."""
+    from model.analysis.replay import plan_windows
+    h = history.history
+    processed = process(h, plant)
+    ts = pd.DatetimeIndex(pd.to_datetime(h["timestamp"], utc=True))
+    s = ReplaySettings.from_config(plant.extra)
+    init = np.arange(120)
+    plan, skipped, cips = plan_windows(ts, processed, h, init, s, [])
+    usable = processed["usable"].to_numpy(dtype=bool)
+    assert len(plan) >= 8 and plan[0][1] and len(cips) == 1
+    seen = np.zeros(len(h), dtype=int)
+    for pos, _ in plan:
+        assert pos.dtype.kind == "i" and np.all(np.diff(pos) > 0) and len(pos) >= s.min_samples
+        assert usable[pos].all() and (ts[pos] > ts[init[-1]]).all()
+        assert (ts[pos[-1]] - ts[pos[0]]) <= pd.Timedelta(hours=s.window_hours * 1.5)
+        seen[pos] += 1
+    assert seen.max() == 1
+    c = cips[0]
+    inside_cip = (ts >= c["start"]) & (ts < c["end"])
+    expected = usable & (ts > ts[init[-1]]) & ~inside_cip
+    assert not skipped and np.array_equal(seen == 1, expected)
+    # the new segment after the CIP starts a window
+    after = [k for k, (pos, new) in enumerate(plan) if new]
+    assert len(after) == 2 and ts[plan[after[1]][0][0]] >= c["end"]
+    # two running rows out of time order: the same windows (by their rows' timestamps)
+    i = int(plan[3][0][10])
+    assert plan[3][0][11] == i + 1          # both usable, in one window: the segment is out of order
+    order = np.arange(len(h))
+    order[[i, i + 1]] = order[[i + 1, i]]
+    plan2, _, _ = plan_windows(ts[order], processed.iloc[order].reset_index(drop=True),
+                               h.iloc[order].reset_index(drop=True), init, s, [])
+    assert [sorted(ts[order][p]) for p, _ in plan2] == [list(ts[p]) for p, _ in plan]
+
+
 def test_replay_errors(plant, history):
     with pytest.raises(ReplayError, match="timestamp"):
         replay(history.history.drop(columns=["timestamp"]), plant)

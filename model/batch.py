@@ -39,6 +39,25 @@ def numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
         return df[columns].apply(pd.to_numeric, errors="coerce")
     return pd.DataFrame({c: pd.to_numeric(df[c], errors="coerce") for c in columns}, index=df.index,
                         columns=columns)
+def matrix(df: pd.DataFrame, columns=INPUT_COLUMNS) -> np.ndarray:
+    """``df[list(columns)].to_numpy(dtype=float)`` column by column, without building the sub-frame
+    (the windows' hot path): the same numbers in the same (Fortran) memory order, so that
+    reductions over it add in the same order."""
+    out = np.empty((len(columns), len(df)))
+    for i, c in enumerate(columns):
+        out[i] = df[c].to_numpy(dtype=float)
+    return out.T
+
+
+def among(values: np.ndarray, choices) -> np.ndarray:
+    """``np.isin(values, choices)`` for a few string choices, as equality tests (isin sorts)."""
+    values = np.asarray(values)
+    out = values == choices[0]
+    for c in choices[1:]:
+        out |= values == c
+    return np.asarray(out, dtype=bool)
+
+
 OUTPUT_KEYS = (
     "p_e_bar", "p_m_bar", "p_c_bar", "p_m_barg", "T_e_C", "T_m_C", "T_c_C", "N_LS_rpm", "N_HS_rpm",
     "Q_sink_kW", "Q_source_kW", "W_LS_kW", "W_HS_kW", "W_total_kW", "COP", "T_sink_out_C",
@@ -195,5 +214,5 @@ def solved_mask(frame: pd.DataFrame, allow_flagged: bool = True) -> np.ndarray:
     """Rows with outputs: 'ok', plus speed/pinch-flagged rows when allow_flagged."""
     ok = frame["status"].to_numpy() == "ok"
     if allow_flagged:
-        ok |= np.isin(frame["status"].to_numpy(), SOLVED_WITH_FLAG)
+        ok |= among(frame["status"].to_numpy(), SOLVED_WITH_FLAG)
     return ok

@@ -49,7 +49,7 @@ import pandas as pd
 from scipy.optimize import minimize_scalar
 
 from . import batch
-from .batch import INPUT_COLUMNS, frame_of, simulate_batch, solve_rows
+from .batch import INPUT_COLUMNS, among, frame_of, matrix, simulate_batch, solve_rows
 from .params import PlantParams
 from .units import BAR, Pa_to_barg
 
@@ -157,7 +157,7 @@ def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:
     """Row positions of ``data`` in k groups of similar operation: the samples sorted along the
     first principal component of their standardised inputs, split into k nearly equal parts
     (one group per row when k >= len(data))."""
-    X = data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    X = matrix(data)
     n = len(X)
     if k >= n:
         return [np.array([i]) for i in range(n)]
@@ -175,7 +175,7 @@ def representative(data: pd.DataFrame, k: int,
                    parts: list[np.ndarray] | None = None) -> tuple[pd.DataFrame, np.ndarray]:
     """k representative rows of ``data`` (canonical inputs) and their weights (sample counts):
     each group of ``groups(data, k)`` replaced by its mean (the data itself when k >= len(data))."""
-    X = data[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    X = matrix(data)
     parts = parts if parts is not None else groups(data, k)
     rows = np.array([X[g].mean(axis=0) for g in parts])
     w = np.array([len(g) for g in parts], dtype=float)
@@ -405,8 +405,8 @@ def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: lis
 def nearest_rows(rows: pd.DataFrame, other: pd.DataFrame) -> np.ndarray:
     """For each row of ``rows`` the position of the nearest row of ``other`` in the standardised
     inputs (INPUT_COLUMNS, scaled by ``other``'s spread or 1)."""
-    a = rows[list(INPUT_COLUMNS)].to_numpy(dtype=float)
-    b = other[list(INPUT_COLUMNS)].to_numpy(dtype=float)
+    a = matrix(rows)
+    b = matrix(other)
     sd = np.nanstd(np.vstack([a, b]), axis=0)
     sd = np.where(sd > 0, sd, 1.0)
     d = (((a[:, None, :] - b[None, :, :]) / sd) ** 2).sum(axis=2)
@@ -443,7 +443,7 @@ def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: dict | None = No
            index=None) -> Point:
     """The Point of a frame of per-row outputs, or of its columns ``cols`` with ``index``."""
     get = (lambda k: cols[k]) if cols is not None else (lambda k: frame[k].to_numpy(dtype=float))  # noqa: E731
-    ok = np.isin(cols["status"] if cols is not None else frame["status"].to_numpy(), SOLVED)
+    ok = among(cols["status"] if cols is not None else frame["status"].to_numpy(), SOLVED)
     Q = get("Q_sink_kW")
     W = get("W_total_kW")
     x = math.nan if sp is None else sp

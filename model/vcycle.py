@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .batch import INPUT_COLUMNS, OUTPUT_KEYS, inputs_from_row, result_row
+from .batch import INPUT_COLUMNS, OUTPUT_KEYS, among, inputs_from_row, result_row
 from .cycle import LS_MODES, LS_SPEED_LOOSE, InfeasibleOperation, ModelError, solve
 from .cycletables import get_cycle_tables
 from .fluid import get_fluid
@@ -163,7 +163,7 @@ class VResult:
 
     def solved(self) -> np.ndarray:
         """Rows with outputs: 'ok' and the flagged statuses."""
-        return np.isin(self.status, ("ok",) + SOLVED_FLAGS)
+        return among(self.status, ("ok",) + SOLVED_FLAGS)
 
     def frame(self, columns: tuple[str, ...] = OUTPUT_KEYS, index=None) -> pd.DataFrame:
         """The frame of ``model.batch.frame_of``: ``columns`` (floats, NaN where unsolved; the

@@ -324,3 +324,28 @@ def test_numeric_columns_are_dataframe_apply_to_numeric():
     pd.testing.assert_frame_equal(numeric(df.iloc[:0], ["a", "b"]),
                                   df.iloc[:0][["a", "b"]].apply(pd.to_numeric, errors="coerce"))
     assert np.isnan(numeric(df, ["b"])["b"].iloc[1])
+
+
+def test_input_matrix_is_the_sub_frames_array_in_its_memory_order():
+    """``model.batch.matrix`` (the windows' input columns as one float array) gives the array of
+    ``df[cols].to_numpy(dtype=float)``: values, shape and Fortran order, so that reductions over it
+    add in the same order (the standard deviations and means below equal to the bit); ``among`` is
+    ``np.isin`` for string choices."""
+    from model.batch import INPUT_COLUMNS, among, matrix
+    rng = np.random.default_rng(3)
+    n = 137
+    df = pd.DataFrame({c: rng.normal(10.0, 3.0, n) for c in INPUT_COLUMNS}, index=np.arange(n) * 2)
+    df["V_sink"] = rng.integers(100, 200, n)             # an integer column converts too
+    df["extra"] = "text"
+    for cols in (INPUT_COLUMNS, ("p_m_sp", "T_sink_in")):
+        ref = df[list(cols)].to_numpy(dtype=float)
+        got = matrix(df, cols)
+        assert got.shape == ref.shape and got.flags.f_contiguous == ref.flags.f_contiguous
+        assert np.array_equal(got, ref)
+        assert np.array_equal(got.std(axis=0), ref.std(axis=0))
+        assert np.array_equal(got.mean(axis=0), ref.mean(axis=0))
+    assert matrix(df.iloc[:0]).shape == (0, len(INPUT_COLUMNS))
+    status = np.array(["ok", "negative_pinch", "ls_speed_high", None, "ok", "failed"], dtype=object)
+    for choices in (("ok",), ("ok", "negative_pinch"), ("ls_speed_high", "ls_speed_low", "negative_pinch")):
+        assert np.array_equal(among(status, choices), np.isin(status, choices))
+    assert among(np.array([], dtype=object), ("ok",)).tolist() == []

@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from .. import batch
-from ..batch import INPUT_COLUMNS, numeric
+from ..batch import INPUT_COLUMNS, among, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
                         representative, search, window_range)
 from ..params import PlantParams
@@ -261,7 +261,7 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
 
     def ok(p: Point) -> bool:
         status = p.col("status")
-        if not np.isin(status, SOLVED).all():
+        if not among(status, SOLVED).all():
             return False
         if len(status) == len(w):
             pm = _pm_barg(p, w, amb)

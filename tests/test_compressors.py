@@ -2,6 +2,7 @@
 simulator's hidden truth on compressor families whose curves differ in shape from plant.yaml's."""
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import replace
 
@@ -219,3 +220,35 @@ def test_the_shape_error_bound_covers_the_learned_curves_error_near_the_data(spe
     bound = SHAPE_K * learner.shape_sd(stage, P[near], N[near]) + CURVE_TOL
     assert (err <= bound).mean() >= SHAPE_COVER
     assert (err <= CURVE_TOL).mean() < 0.6
+
+
+def test_distances_by_coordinate_equal_the_three_dimensional_sums(speed_peak):
+    """The learner's distances (coverage distance, prior share, the local curves' kernel) are
+    computed coordinate by coordinate; the numbers equal the (k, m, 2) arrays summed over their last
+    axis to the bit. The covered bins' centres are cached until the next update."""
+    from model.analysis.compressors import _rect_distance, _sq_norm
+    obs, learner, _ = speed_peak
+    rng = np.random.default_rng(11)
+    q = np.column_stack([rng.uniform(1.0, 6.0, 300), rng.uniform(0.3, 1.2, 300)])
+    q[5] = np.nan
+    c = learner.coverage["HS"].centers(learner.s.min_bin_weight)
+    half, scale, h = np.array([0.05, 0.025]), np.array([0.1, 0.05]), np.array([0.2, 0.1])
+    gap = np.maximum(np.abs(q[:, None, :] - c[None, :, :]) - half, 0.0) / scale
+    assert np.array_equal(_rect_distance(q, c, half, scale), np.sqrt((gap ** 2).sum(axis=2)), equal_nan=True)
+    z = (q[:, None, :] - c[None, :, :]) / h
+    assert np.array_equal(_sq_norm(q, c, h), (z ** 2).sum(axis=2), equal_nan=True)
+    # the cache follows the learner's updates: after one, the distances are those of the new bins
+    d0 = learner.coverage_distance("HS", q[:, 0], q[:, 1])
+    more = obs.iloc[: len(obs) // 3].copy()
+    more["pi_HS"] = more["pi_HS"] + 0.6                # operation the learner has not seen
+    more["t"] = more["t"] + 3600.0 * 24
+    moved = copy.deepcopy(learner)
+    moved.update(more)
+    d1 = moved.coverage_distance("HS", q[:, 0], q[:, 1])
+    cov = moved.coverage["HS"]
+    c1 = cov.centers(moved.s.min_bin_weight)
+    gap1 = np.maximum(np.abs(q[:, None, :] - c1[None, :, :]) - 0.5 * np.array([cov.bin_pi, cov.bin_n]),
+                      0.0) / np.array([moved.s.margin_pi, moved.s.margin_n])
+    ref = np.where(np.isfinite(q).all(axis=1), np.sqrt((gap1 ** 2).sum(axis=2)).min(axis=1), np.inf)
+    assert np.array_equal(d1, ref) and not np.array_equal(d0, d1)
+    assert np.array_equal(learner.coverage_distance("HS", q[:, 0], q[:, 1]), d0)

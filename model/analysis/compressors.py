@@ -519,6 +519,23 @@ class _BinStats:
         return out
 
 
+def _sq_norm(q: np.ndarray, c: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Per point of q (k, 2) and centre of c (m, 2): the squared norm of their difference scaled
+    by h, (k, m). Coordinate by coordinate: the same numbers as summing a (k, m, 2) array over its
+    last axis (two terms), without numpy's slow reduction over an axis of length two."""
+    z0 = (q[:, 0, None] - c[None, :, 0]) / h[0]
+    z1 = (q[:, 1, None] - c[None, :, 1]) / h[1]
+    return z0 ** 2 + z1 ** 2
+
+
+def _rect_distance(q: np.ndarray, c: np.ndarray, half: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Per point of q (k, 2) and rectangle (centre c (m, 2), half widths ``half``): the distance
+    to the rectangle, each coordinate scaled by ``scale``, (k, m) (0 inside)."""
+    g0 = np.maximum(np.abs(q[:, 0, None] - c[None, :, 0]) - half[0], 0.0) / scale[0]
+    g1 = np.maximum(np.abs(q[:, 1, None] - c[None, :, 1]) - half[1], 0.0) / scale[1]
+    return np.sqrt(g0 ** 2 + g1 ** 2)
+
+
 class LocalCurves:
     """Locally weighted quadratic curves on a grid of nodes over the covered region.
 
@@ -553,10 +570,9 @@ class LocalCurves:
         # nodes the data reaches (within a margin of a covered bin); others fall back to global
         scale = np.array([s.margin_pi, s.margin_n])
         half = 0.5 * np.array([coverage.bin_pi, coverage.bin_n])
-        gap = np.maximum(np.abs(nodes[:, None, :] - cov[None, :, :]) - half, 0.0) / scale
-        near = np.sqrt((gap ** 2).sum(axis=2)).min(axis=1) <= 1.5
+        near = _rect_distance(nodes, cov, half, scale).min(axis=1) <= 1.5
         coef = np.full((len(nodes), 6), np.nan)
-        w_all = np.exp(-0.5 * (((nodes[:, None, :] - centres[None, :, :]) / h) ** 2).sum(axis=2))
+        w_all = np.exp(-0.5 * _sq_norm(nodes, centres, h))
         w_all[w_all < 1e-4] = 0.0
         G = global_A / max(np.trace(global_A) / 6.0, 1e-300)      # normalised global precision
         # all nodes at once: the weighted bin statistics (k, 6, 6) and (k, 6), then one batched solve
@@ -1128,8 +1144,7 @@ class CompressorLearner:
             return np.ones(len(pi))
         h = self.s.local_bandwidth_bins * np.array([self.s.bin_pi, self.s.bin_n])
         q = np.column_stack([pi, n])
-        z = (q[:, None, :] - c[None, :, :]) / h
-        W = np.exp(-0.5 * (z ** 2).sum(axis=2)) @ wb
+        W = np.exp(-0.5 * _sq_norm(q, c, h)) @ wb
         mu = self.s.local_prior_weight
         out = mu / (mu + W)
         return np.where(np.isfinite(q).all(axis=1), out, 1.0)
@@ -1199,16 +1214,22 @@ class CompressorLearner:
         them (a curve's peak can hide in a gap between two clusters of data, e.g. between the
         operation at two set points). inf when nothing is covered. ``reference``: a coverage
         document (commissioning) instead of the current one."""
-        cov = _Coverage.from_dict(reference) if reference is not None else self.coverage[stage]
-        c = cov.centers(self.s.min_bin_weight)
+        if reference is not None:
+            cov = _Coverage.from_dict(reference)
+            c = cov.centers(self.s.min_bin_weight)
+        else:           # the covered bins' centres, cached until the next update
+            cov = self.coverage[stage]
+            key = ("centers", stage)
+            if key not in self._local:
+                self._local[key] = cov.centers(self.s.min_bin_weight)
+            c = self._local[key]
         q = np.column_stack([np.atleast_1d(pi), np.atleast_1d(n)]).astype(float)
         if len(c) == 0:
             return np.full(len(q), np.inf)
         half = 0.5 * np.array([cov.bin_pi, cov.bin_n])
         scale = np.array([self.s.margin_pi, self.s.margin_n])
         # per query and bin: the distance to the bin's rectangle, scaled by the margin
-        gap = np.maximum(np.abs(q[:, None, :] - c[None, :, :]) - half, 0.0) / scale
-        d = np.sqrt((gap ** 2).sum(axis=2)).min(axis=1)
+        d = _rect_distance(q, c, half, scale).min(axis=1)
         return np.where(np.isfinite(q).all(axis=1), d, np.inf)
 
     def eta_is(self, stage: str, pi, n) -> np.ndarray:

@@ -252,3 +252,27 @@ def test_distances_by_coordinate_equal_the_three_dimensional_sums(speed_peak):
     ref = np.where(np.isfinite(q).all(axis=1), np.sqrt((gap1 ** 2).sum(axis=2)).min(axis=1), np.inf)
     assert np.array_equal(d1, ref) and not np.array_equal(d0, d1)
     assert np.array_equal(learner.coverage_distance("HS", q[:, 0], q[:, 1]), d0)
+
+
+def test_shared_stages_answers_a_repeated_call_from_the_first(plant):
+    """Within ``shared_stages`` a second ``stage_arrays`` call with the same inputs returns the
+    first call's arrays (a window's pass 1 asks twice); other inputs, and calls outside it, are
+    computed; the numbers are those without it."""
+    from model.analysis.compressors import shared_stages, stage_arrays
+    from model.proptable import get_tables
+    tab = get_tables(plant.fluid)
+    p_suc, T_suc = np.array([2.5e5, 3.0e5, np.nan]), np.array([262.0, 268.0, 270.0])
+    p_dis, T_dis = np.array([9.0e5, 1.0e6, 1.1e6]), np.array([340.0, 345.0, 350.0])
+    plain = stage_arrays(tab, p_suc, T_suc, p_dis, T_dis)
+    assert stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) is not plain
+    with shared_stages():
+        a = stage_arrays(tab, p_suc, T_suc, p_dis, T_dis)
+        assert stage_arrays(tab, p_suc.copy(), T_suc.copy(), p_dis, T_dis) is a
+        other = stage_arrays(tab, p_suc, T_suc + 1.0, p_dis, T_dis)
+        assert other is not a and not np.array_equal(other["h_suc"], a["h_suc"], equal_nan=True)
+        with shared_stages():
+            assert stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) is not a
+        assert stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) is a
+    assert stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) is not a
+    for k, v in plain.items():
+        assert np.array_equal(a[k], v, equal_nan=True), k

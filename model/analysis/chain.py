@@ -39,7 +39,7 @@ from ..units import BAR, M3H
 from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, settle_advice
 from .cip import CipSettings, ForecastState, cost_levels_for, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
-from .compressors import STAGES, CompressorLearner, LearningSettings, observe
+from .compressors import STAGES, CompressorLearner, LearningSettings, observe, shared_stages
 from .surrogate_tracker import SurrogateTracker, TrackerSettings, optimum_row
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
@@ -446,6 +446,11 @@ class AnalysisChain:
             task.done = True
             return task
         fixed = state.fixed
+        with shared_stages():       # derived and observe ask for the same compressor states
+            return self._prepare(data, task, res, state, fixed)
+
+    def _prepare(self, data, task, res, state, fixed) -> WindowTask:
+        """``prepare`` past its first checks."""
         der = derived(data, fixed)
         for c in INPUT_COLUMNS:
             der[c] = pd.to_numeric(data[c], errors="coerce").to_numpy(dtype=float)

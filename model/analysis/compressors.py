@@ -32,6 +32,8 @@ Units: SI inside (Pa, K, J/kg, kg/s, W); observation frames carry names with uni
 from __future__ import annotations
 
 import math
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -150,11 +152,37 @@ def eta_is_measured(fl: Fluid, p_suc: float, T_suc: float, p_dis: float, T_dis: 
     return (st[3] - st[0]) / (st[2] - st[0])
 
 
+_shared = threading.local()
+
+
+@contextmanager
+def shared_stages():
+    """Within it, ``stage_arrays`` answers a call with the same inputs as an earlier one in this
+    thread from that call (a window's pass 1 asks for both stages twice: the measured side's
+    eta_is and the compressor observations). The arrays returned are shared: read them only."""
+    prev = getattr(_shared, "memo", None)
+    _shared.memo = {}
+    try:
+        yield
+    finally:
+        _shared.memo = prev
+
+
 def stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) -> dict:
     """``stage_states`` for arrays from the property tables (``model.proptable``): h_suc, s_suc,
     rho_suc, h_dis, h_is [J/kg, J/kg/K, kg/m^3], ``sup`` (the discharge is superheated: p_dis >
     p_suc and T_dis > T_sat(p_dis) + 0.5 K; elsewhere stage_states returns None) and ``handled``
     (the tables answered; other rows need the scalar ``stage_states``)."""
+    memo = getattr(_shared, "memo", None)
+    if memo is None:
+        return _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis)
+    key = (id(tab),) + tuple(np.asarray(a, dtype=float).tobytes() for a in (p_suc, T_suc, p_dis, T_dis))
+    if key not in memo:
+        memo[key] = (tab, _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis))   # tab kept: its id stays its own
+    return memo[key][1]
+
+
+def _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) -> dict:
     sat = tab.sat(p_suc)
     near = T_suc <= sat.T + 0.05
     h_v, s_v, r_v = tab.vapour(p_suc, T_suc)

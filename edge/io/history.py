@@ -147,68 +147,146 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
         raise HistoryError(f"{path}: {exc}") from None
     # rows are split by the csv module, so that each keeps its line number and a row with more
     # or fewer fields than the header (shifted or cut: which value belongs to which column is
-    # unknown) is skipped and named instead of being padded or refused wholesale
-    reader = csv.reader(io.StringIO(text), delimiter=sep)
+    # unknown) is skipped and named instead of being padded or refused wholesale. They are turned
+    # into numbers CHUNK_ROWS at a time: a plant-year's 13.7 million cells as Python strings at
+    # once took 1.7 GB
+    reader = csv.reader(_lines(text), delimiter=sep)
     names: list[str] | None = None
+    header_error: str | None = None  # raised after the rows (a CSV error in them comes first)
     rows, lines, ragged = [], [], []
+    parts: list = []
+
+    def convert() -> None:
+        if rows and header_error is None:
+            parts.append(_convert_chunk(rows, lines, names, decimal))
+        rows.clear()
+        lines.clear()
     try:
         for row in reader:
             if not any(c.strip() for c in row):
                 continue
             if names is None:
                 names = [c.strip() for c in row]
+                header_error = _header_error(path, names, REQUIRED if required is None else required)
                 continue
             if len(row) == len(names):
                 rows.append(row)
                 lines.append(reader.line_num)
+                if len(rows) >= CHUNK_ROWS:
+                    convert()
             else:
                 ragged.append(reader.line_num)
     except csv.Error as exc:
         raise HistoryError(f"{path}: line {reader.line_num}: cannot read as CSV: "
                            f"{str(exc)[:200]}") from None
-    names = names or []
-    if "timestamp" not in names:
-        raise HistoryError(f"{path}: no 'timestamp' column (the first column of a history CSV)")
-    dup = sorted({c for c in names if names.count(c) > 1})
-    if dup:
-        raise HistoryError(f"{path}: column(s) {', '.join(dup)} appear more than once")
-    required = REQUIRED if required is None else required
-    missing = [c for c in required if c not in names]
-    if missing:   # without any of these every row would be unusable: say which, up front
-        raise HistoryError(f"{path}: missing column(s) {', '.join(missing)} "
-                           "(canonical history columns, SPEC §4)")
-    df = pd.DataFrame(rows, columns=names, dtype=str)
-    line_of = np.asarray(lines, dtype=int)
+    if names is None:
+        header_error = _header_error(path, [], REQUIRED if required is None else required)
+    if header_error is not None:
+        raise HistoryError(header_error)
+    convert()
+    if not parts:
+        parts.append(_convert_chunk([], [], names, decimal))
+    df = pd.concat([p[0] for p in parts], ignore_index=True) if len(parts) > 1 else parts[0][0]
+    line_of = np.concatenate([p[1] for p in parts])
+    ts = pd.concat([p[2] for p in parts], ignore_index=True) if len(parts) > 1 else parts[0][2]
+    flags = {c: np.concatenate([p[3][c] for p in parts]) for c in parts[0][3]}
+    texts: dict = {}                 # column -> {line: stripped text} of its non-numeric cells
+    for p in parts:
+        for c, d in p[4].items():
+            texts.setdefault(c, {}).update(d)
     skipped: dict[str, int] = {}
     first_ragged = None
     if ragged:
         skipped["wrong number of fields"] = len(ragged)
         first_ragged = f"line {ragged[0]}"
-    text_ts = df["timestamp"].str.strip()
-    ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601")
     bad = ts.isna().to_numpy()
     first_bad = None
     if bad.any():
         i = int(bad.argmax())
-        first_bad = f"line {line_of[i]}: {_short(text_ts.iloc[i])}"
+        text_bad = next(p[5] for p in parts if p[5] is not None)      # the first chunk's with one
+        first_bad = f"line {line_of[i]}: {_short(text_bad)}"
         if bad.all():
             raise HistoryError(f"{path}: no row has a readable timestamp; the first, at "
                                f"{first_bad}, is not {TIMESTAMP_FORMAT}")
         skipped["bad timestamp"] = int(bad.sum())
-    df, line_of = df.loc[~bad].copy(), line_of[~bad]
-    df["timestamp"] = ts[~bad]
+    keep = ~bad
+    df, line_of = df.loc[keep].copy(), line_of[keep]
+    flags = {c: f[keep] for c, f in flags.items()}
+    df["timestamp"] = ts[keep]
     order = df["timestamp"].argsort(kind="stable").to_numpy()
     df, line_of = df.iloc[order], line_of[order]
+    flags = {c: f[order] for c, f in flags.items()}
     dup_ts = df["timestamp"].duplicated(keep="first").to_numpy()
     if dup_ts.any():
         skipped["duplicate timestamp"] = int(dup_ts.sum())
         df, line_of = df.loc[~dup_ts], line_of[~dup_ts]
+        flags = {c: f[~dup_ts] for c, f in flags.items()}
     non_numeric: dict[str, int] = {}
     first_nn: dict[str, str] = {}
-    for c in df.columns:
-        if c in ("timestamp", "quality"):
+    for c, nn in flags.items():      # counted on the rows kept, the first in time order named
+        if nn.any():
+            non_numeric[c] = int(nn.sum())
+            line = int(line_of[int(nn.argmax())])
+            first_nn[c] = f"line {line}: {_short(texts[c][line])}"
+    return History(df.reset_index(drop=True), skipped, non_numeric, sep, decimal, first_bad,
+                   first_nn, first_ragged)
+
+
+CHUNK_ROWS = 65536          # rows turned into numbers at a time
+
+
+def _lines(text: str):
+    """The lines of ``text``, each with its newline (what iterating io.StringIO(text) gives,
+    without its copy of the text at four bytes per character)."""
+    start, n = 0, len(text)
+    while start < n:
+        end = text.find("\n", start)
+        if end < 0:
+            yield text[start:]
+            return
+        yield text[start:end + 1]
+        start = end + 1
+
+
+def _header_error(path, names: list[str], required) -> str | None:
+    """What is wrong with the header's column names, or None."""
+    if "timestamp" not in names:
+        return f"{path}: no 'timestamp' column (the first column of a history CSV)"
+    dup = sorted({c for c in names if names.count(c) > 1})
+    if dup:
+        return f"{path}: column(s) {', '.join(dup)} appear more than once"
+    missing = [c for c in required if c not in names]
+    if missing:   # without any of these every row would be unusable: say which, up front
+        return (f"{path}: missing column(s) {', '.join(missing)} "
+                "(canonical history columns, SPEC §4)")
+    return None
+
+
+def _convert_chunk(rows: list, lines: list, names: list[str], decimal: str):
+    """One chunk of rows (lists of strings): (frame with the numeric columns as numbers, the
+    timestamp parsed (NaT where unreadable) and the others as text, line numbers, timestamps,
+    per numeric column the cells that are not numbers, per column {line: stripped text} of those
+    cells, the stripped text of the chunk's first unreadable timestamp or None). The frame is
+    built from new columns: one sharing the strings' block would keep every cell's string."""
+    import numpy as np
+    import pandas as pd
+    raw = pd.DataFrame(rows, columns=names, dtype=str)
+    line_of = np.asarray(lines, dtype=int)
+    text_ts = raw["timestamp"].str.strip()
+    ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601").reset_index(drop=True)
+    bad = ts.isna().to_numpy()
+    first_bad = str(text_ts.iloc[int(bad.argmax())]) if bad.any() else None
+    cols: dict = {}
+    flags: dict = {}
+    texts: dict = {}
+    for c in raw.columns:
+        if c == "timestamp":
+            cols[c] = ts
             continue
-        cells = df[c].str.strip()
+        if c == "quality":
+            cols[c] = raw[c].to_numpy().copy()
+            continue
+        cells = raw[c].str.strip()
         if decimal == ",":   # a point is then no decimal mark (perhaps thousands): not a number
             numeric_text = cells.where(~cells.str.contains(".", regex=False), "x")
             numeric_text = numeric_text.str.replace(",", ".", regex=False)
@@ -216,13 +294,11 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
             numeric_text = cells
         num = pd.to_numeric(numeric_text, errors="coerce")
         nn = (num.isna() & ~cells.str.lower().isin(_MISSING_TEXT)).to_numpy()
+        flags[c] = nn
         if nn.any():
-            non_numeric[c] = int(nn.sum())
-            i = int(nn.argmax())
-            first_nn[c] = f"line {line_of[i]}: {_short(cells.iloc[i])}"
-        df[c] = num
-    return History(df.reset_index(drop=True), skipped, non_numeric, sep, decimal, first_bad,
-                   first_nn, first_ragged)
+            texts[c] = dict(zip(line_of[nn].tolist(), cells.to_numpy()[nn].tolist()))
+        cols[c] = num.to_numpy()
+    return pd.DataFrame(cols, columns=names), line_of, ts, flags, texts, first_bad
 
 
 def read_history_csv(path, sep: str | None = None, decimal: str | None = None):

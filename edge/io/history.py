@@ -11,7 +11,6 @@ Non-numeric cells become missing values (counted per column, the first one named
 from __future__ import annotations
 
 import csv
-import io
 import re
 from dataclasses import dataclass, field
 from pathlib import Path

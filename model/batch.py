@@ -39,6 +39,8 @@ def numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
         return df[columns].apply(pd.to_numeric, errors="coerce")
     return pd.DataFrame({c: pd.to_numeric(df[c], errors="coerce") for c in columns}, index=df.index,
                         columns=columns)
+
+
 def matrix(df: pd.DataFrame, columns=INPUT_COLUMNS) -> np.ndarray:
     """``df[list(columns)].to_numpy(dtype=float)`` column by column, without building the sub-frame
     (the windows' hot path): the same numbers in the same (Fortran) memory order, so that

@@ -327,6 +327,9 @@ class CycleTables:
     # ``T_RANGE``, ``ds``/``dh`` against DS_MAX/DH_MAX and ``d`` against LIQ_D_MAX once) ----------------
     def sat_raw(self, T):
         """(p, h_f, h_g, s_g, rho_g) at T [K] within the table (no checks)."""
+        if _kernels._KERNEL is not None and np.ndim(T) == 1:
+            v = _kernels.sat(self._sat_c, T, self._sat_x0, 1.0 / SAT_DT)
+            return np.exp(v[0]), v[1], v[2], v[3], np.exp(v[4])
         t = (T - self._sat_x0) * (1.0 / SAT_DT)
         i = t.astype(np.intp)
         c = self._sat_c[i]
@@ -347,6 +350,11 @@ class CycleTables:
         x = (T_c - self._liq_x0) * (1.0 / LIQ_DT)
         i = np.where(np.isfinite(x), np.nan_to_num(x), 0.0).astype(np.intp)   # NaN rows stay NaN
         return i * (self._liq_nd - 1), (x - i)[:, None]
+
+    def liq_kernel_args(self, row) -> tuple:
+        """The liquid table as ``speedkernel.subcooler`` takes it: (coefficients, base, tx, d0,
+        1/dd, dh/dT scale) at ``liq_row``'s row."""
+        return self._liq, row[0], row[1], self._liq_d0, 1.0 / LIQ_DD, -1.0 / LIQ_DD
 
     def liq_raw(self, row, d):
         """(h, dh/dT at constant pressure) of the liquid at subcooling d [K] (``liq_row``'s T_c).
@@ -371,6 +379,10 @@ class CycleTables:
 
     # ---- direct lookups derived from the vapour table ---------------------------------------------
     def _derived(self, C, T_sat, dv, grid, alpha):
+        if _kernels._KERNEL is not None and np.ndim(T_sat) == 1 and np.shape(dv) == np.shape(T_sat):
+            return _kernels.derived(C, T_sat, np.log1p(dv * (math.expm1(alpha) / grid)), self._vap_x0,
+                                    1.0 / VAP_DT, self._vap_nx - 2, self._der_w0, 1.0 / alpha,
+                                    1.0 / self._der_dw, self._der_nw - 2)
         x = (T_sat - self._vap_x0) * (1.0 / VAP_DT)
         i = np.minimum(np.maximum(x.astype(np.intp), 0), self._vap_nx - 2)
         y = (np.log1p(dv * (math.expm1(alpha) / grid)) * (1.0 / alpha) - self._der_w0) * (1.0 / self._der_dw)

@@ -30,6 +30,7 @@ import dataclasses
 
 import numpy as np
 
+from .analysis import speedkernel as _kernels
 from .components import evaporator_T_e
 from .cycletables import DH_MAX, DS_MAX, LIQ_D_MAX, T_RANGE, VAP_T_MAX, VAP_T_MIN, CycleTables
 from .params import PlantParams
@@ -346,6 +347,9 @@ class Flowsheet:
             d = np.where((d > 0.0) & (d < dT) & (d <= LIQ_D_MAX), d, 0.5 * np.minimum(dT, LIQ_D_MAX))
             d = np.where(d == d, d, 1.0)
         d_hi = np.minimum(dT, LIQ_D_MAX)
+        if _kernels._SC_PRE is not None and np.ndim(d) == 1 and np.shape(row[0]) == np.shape(d):
+            return _kernels.subcooler(*tab.liq_kernel_args(row), d, num, h_g_m, h_f_c, C_w, UA, dT, d_hi,
+                                      SC_ITER, SC_FINISH)
         k = len(d)
         C_w2, UA2 = np.concatenate([C_w, C_w]), np.concatenate([UA, UA])
         for _ in range(SC_ITER):

@@ -180,6 +180,48 @@ def test_liquid_table_equals_numpy_to_the_bit(kernel):
     assert calls == [k] and np.isfinite(got[0]).sum() == k - 2 and np.isnan(got[0][:2]).all()
 
 
+def test_saturation_and_derived_lookups_equal_numpy_to_the_bit(kernel):
+    """The compiled saturation table (``sat_raw``) and the isentropic / superheat-from-h lookups
+    (``isen_raw``, ``tofh_raw``): over their ranges, on nodes, with NaN and out-of-range
+    coordinates (clamped cells, as numpy's)."""
+    from model.cycletables import DH_MAX, DS_MAX, T_RANGE, VAP_T_MIN, get_cycle_tables
+    tab = get_cycle_tables()
+    rng = np.random.default_rng(9)
+    k = 5000
+    T = rng.uniform(VAP_T_MIN, T_RANGE[1], k)
+    T[:10] = np.round(T[:10])
+    ref, got = _both(lambda: tab.sat_raw(T))
+    _equal(ref, got)
+    assert np.isfinite(got[0]).all() and np.isfinite(got[4]).all()
+    ds, dh = rng.uniform(0.0, DS_MAX, k), rng.uniform(0.0, DH_MAX, k)
+    ds[:4] = dh[:4] = [np.nan, 0.0, -1.0, np.inf]
+    Tx = T.copy()
+    Tx[4:7] = [np.nan, 100.0, 900.0]              # outside the table: numpy's clamped cells
+    for f, dv in ((tab.isen_raw, ds), (tab.tofh_raw, dh)):
+        with np.errstate(all="ignore"):             # as in the flowsheet: failed rows carry NaN
+            ref, got = _both(lambda: f(Tx, dv))
+        np.testing.assert_array_equal(ref, got)
+        assert not np.isfinite(got[[0, 3, 4]]).any() and np.isfinite(got[7:]).all()
+
+
+def test_flowsheet_with_the_kernels_solves_to_the_bit(plant, kernel, monkeypatch):
+    """``solve_many`` on the operating grid x set points (rows that solve, rows beyond the LS speed
+    range, cold and warm subcooler starts): the same frame with the compiled saturation, lookups
+    and subcooler Newton as with numpy, and the subcooler ran in the kernel."""
+    from model.vcycle import solve_many
+    from test_vcycle import grid
+    df = grid(full=True)
+    calls = []
+    sc = speedkernel.subcooler
+    monkeypatch.setattr(speedkernel, "subcooler", lambda *a: calls.append(len(a[6])) or sc(*a))
+    ref, got = _both(lambda: solve_many(df, plant).frame())
+    assert sum(calls) > 10 * len(df)
+    num = [c for c in got.columns if pd.api.types.is_numeric_dtype(got[c])]
+    pd.testing.assert_frame_equal(ref[num], got[num], check_exact=True)
+    pd.testing.assert_frame_equal(ref.drop(columns=num), got.drop(columns=num))
+    assert got["status"].eq("ok").sum() > len(df) // 3 and got["status"].ne("ok").sum() > len(df) // 3
+
+
 def test_replay_with_the_kernel_gives_the_same_windows(plant, kernel, monkeypatch):
     from model.analysis.replay import replay
     from simulator.synthetic import Noise, Operation, Truth, generate

@@ -28,6 +28,8 @@ import numpy as np
 _KERNEL = None          # the compiled search once ``enable`` succeeded: every kernel's switch
 _CURVE = None           # the compiled stacked curve (set with _KERNEL)
 _LIQ = None             # the compiled liquid table (set with _KERNEL)
+_SAT = _DER = None      # the compiled saturation table and isentropic / T-from-h lookups
+_SC_PRE = _SC_POST = None   # the subcooler's Newton step, before and after its exp
 _TRIED = False
 
 
@@ -216,10 +218,144 @@ def _liq_rows(C, base, tx, d, d0, inv_dd, dscale, h_out, dh_out):
         dh_out[r] = ((3.0 * a0 * t + 2.0 * a1) * t + a2) * dscale
 
 
+def _idx(x, hi):
+    """``np.minimum(np.maximum(x.astype(np.intp), 0), hi)``: numpy's cast of a NaN, an infinity or a
+    number beyond the integers is the smallest integer on x86, so those rows read index 0."""
+    if not (x > -9.2e18 and x < 9.2e18):
+        return 0
+    i = int(x)
+    if i < 0:
+        return 0
+    return hi if i > hi else i
+
+
+def _sat_rows(C, T, x0, inv_dt, out):
+    """``CycleTables.sat_raw`` without its two ``exp``: the spline columns (ln p, h_f, h_g, s_g,
+    ln rho_g) at T (rows within the table: the index is not clamped, as there)."""
+    n = C.shape[0]
+    for r in range(T.shape[0]):
+        t = (T[r] - x0) * inv_dt
+        if not (t > -9.2e18 and t < 9.2e18):
+            i = -9223372036854775807 - 1
+        else:
+            i = int(t)
+        k = i + n if i < 0 else i
+        if k < 0 or k >= n:
+            raise IndexError("saturation table index out of bounds")
+        t = t - i
+        for q in range(5):
+            out[q, r] = ((C[k, 0, q] * t + C[k, 1, q]) * t + C[k, 2, q]) * t + C[k, 3, q]
+
+
+def _der_rows(C, T, lw, x0, inv_dx, nxm2, w0, inv_alpha, inv_dw, nwm2, out):
+    """``CycleTables._derived`` after its ``log1p`` (lw = log1p(dv * expm1(alpha)/grid)): the
+    bicubic at the rows' (T_sat, w)."""
+    nw1 = nwm2 + 1
+    for r in range(T.shape[0]):
+        x = (T[r] - x0) * inv_dx
+        i = _idx(x, nxm2)
+        y = (lw[r] * inv_alpha - w0) * inv_dw
+        j = _idx(y, nwm2)
+        k = i * nw1 + j
+        tx = x - i
+        ty = y - j
+        a0 = ((C[k, 0] * tx + C[k, 4]) * tx + C[k, 8]) * tx + C[k, 12]
+        a1 = ((C[k, 1] * tx + C[k, 5]) * tx + C[k, 9]) * tx + C[k, 13]
+        a2 = ((C[k, 2] * tx + C[k, 6]) * tx + C[k, 10]) * tx + C[k, 14]
+        a3 = ((C[k, 3] * tx + C[k, 7]) * tx + C[k, 11]) * tx + C[k, 15]
+        out[r] = ((a0 * ty + a1) * ty + a2) * ty + a3
+
+
+def _nmin(a, b):
+    """``np.minimum`` of two numbers (NaN wins)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+def _nmax(a, b):
+    """``np.maximum`` of two numbers (NaN wins)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+def _sc_pre(LC, base, tx, d, d0, inv_dd, dscale, num, h_g_m, h_f_c, C_w, UA, h, h_T, g, m, dq, cp, C,
+            C_min, Cr, NTU, arg):
+    """One Newton step of ``Flowsheet._subcooler`` up to its ``exp``: the liquid at d, the flow and
+    the capacities, and for the capacity C and its finite-difference step C*(1 + 1e-7) (rows k + r)
+    ``counterflow_eps_v``'s C_min, Cr, NTU and the exponent NTU*(Cr - 1)."""
+    k = d.shape[0]
+    _liq_rows(LC, base, tx, d, d0, inv_dd, dscale, h, h_T)
+    for r in range(k):
+        g[r] = h_g_m[r] - h[r]
+        m[r] = num[r] / g[r]
+        dq[r] = h_f_c[r] - h[r]
+        cp[r] = dq[r] / d[r]
+        C[r] = m[r] * cp[r]
+        for q in range(2):
+            c = C[r] if q == 0 else C[r] * (1.0 + 1e-7)
+            s = r + q * k
+            cmin = _nmin(c, C_w[r])
+            cr = cmin / _nmax(c, C_w[r])
+            ntu = UA[r] / cmin
+            C_min[s] = cmin
+            Cr[s] = cr
+            NTU[s] = ntu
+            arg[s] = ntu * (cr - 1.0)
+
+
+def _sc_post(x, C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, finish):
+    """The rest of the Newton step after ``exp`` (x = exp(arg)): the step; 1 when every row's step is
+    below SC_FINISH of d (d untouched: the caller finishes), else d updated as numpy does and 2 when
+    every row is small or has no step, 0 to go on."""
+    k = d.shape[0]
+    all_small = True
+    for r in range(k):
+        q0 = r
+        q1 = r + k
+        cr, ntu = Cr[q0], NTU[q0]
+        eps = ntu / (1.0 + ntu) if abs(1.0 - cr) < 1e-9 else (1.0 - x[q0]) / (1.0 - cr * x[q0])
+        cr2, ntu2 = Cr[q1], NTU[q1]
+        eps2 = ntu2 / (1.0 + ntu2) if abs(1.0 - cr2) < 1e-9 else (1.0 - x[q1]) / (1.0 - cr2 * x[q1])
+        Q_e = eps * C_min[q0] * dT[r]
+        dQ_dC = (eps2 * C_min[q1] * dT[r] - Q_e) / (C[r] * 1e-7)
+        mr = m[r]
+        dm = -mr * h_T[r] / g[r]
+        st = (mr * dq[r] - Q_e) / (dm * dq[r] + mr * h_T[r] - dQ_dC * (dm * cp[r] + mr * (h_T[r] - cp[r]) / d[r]))
+        step[r] = st
+        if not (abs(st) <= finish * d[r]):
+            all_small = False
+    if all_small:
+        return 1
+    stop = True
+    for r in range(k):
+        st = step[r]
+        dr = d[r]
+        if abs(st) <= finish * dr:
+            continue
+        if st == st:
+            stop = False
+        dn = dr - st
+        if dn != dn:
+            dn = 0.5 * dr
+        if dn <= 0.0:
+            d[r] = 0.5 * dr
+        elif dn > d_hi[r]:
+            d[r] = 0.5 * (dr + d_hi[r])
+        else:
+            d[r] = dn
+    return 2 if stop else 0
+
+
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _LIQ, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -234,9 +370,15 @@ def enable() -> bool:
         glb["_phi"] = phi
         search = type(_search)(_search.__code__, glb, _search.__name__)
         _KERNEL, _CURVE, _LIQ = jit(search), jit(_curve_rows), jit(_liq_rows)
+        _SAT = jit(_sat_rows)
+        idx, nmin, nmax = jit(_idx), jit(_nmin), jit(_nmax)
+        glb = dict(_der_rows.__globals__, _idx=idx, _nmin=nmin, _nmax=nmax, _liq_rows=_LIQ)
+        _DER = jit(type(_der_rows)(_der_rows.__code__, glb, _der_rows.__name__))
+        _SC_PRE = jit(type(_sc_pre)(_sc_pre.__code__, glb, _sc_pre.__name__))
+        _SC_POST = jit(_sc_post)
         _probe()
     except Exception:            # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = _LIQ = None
+        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = None
         return False
     return True
 
@@ -256,6 +398,10 @@ def _probe() -> None:
     curve(np.zeros((1, 6)), np.zeros(1, dtype=np.intp), z1, z1, (z, z1, z1 + 1, np.zeros(1, dtype=np.intp),
           np.zeros(1, dtype=np.intp), np.zeros(1, dtype=bool), z1, z1 + 1), None)
     liq(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), z1, 0.0, 2.0, -2.0)
+    sat(np.zeros((2, 4, 5)), z1, 0.0, 1.0)
+    derived(np.zeros((4, 16)), z1, z1, 0.0, 1.0, 0, 0.0, 1.0, 1.0, 0)
+    subcooler(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), 0.0, 2.0, -2.0, z1 + 0.25,
+              z1 + 1.0, z1 + 2.0, z1, z1 + 1.0, z1 + 1.0, z1 + 2.0, z1 + 10.0, 30, 1e-6)
 
 
 def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
@@ -320,3 +466,49 @@ def liq(C, base, tx, d, d0: float, inv_dd: float, dscale: float):
     _LIQ(C, np.ascontiguousarray(base, dtype=np.intp), np.ascontiguousarray(tx[:, 0], dtype=float), d,
          float(d0), float(inv_dd), float(dscale), h, dh)
     return h, dh
+
+
+def sat(C, T, x0: float, inv_dt: float) -> np.ndarray:
+    """``CycleTables.sat_raw``'s spline columns (5, rows) at T, before its two ``exp``."""
+    T = np.ascontiguousarray(T, dtype=float)
+    out = np.empty((5, T.shape[0]))
+    _SAT(C, T, float(x0), float(inv_dt), out)
+    return out
+
+
+def derived(C, T, lw, x0, inv_dx, nxm2, w0, inv_alpha, inv_dw, nwm2) -> np.ndarray:
+    """``CycleTables._derived`` after its ``log1p`` (``lw``)."""
+    T = np.ascontiguousarray(T, dtype=float)
+    out = np.empty(T.shape[0])
+    _DER(C, T, np.ascontiguousarray(lw, dtype=float), float(x0), float(inv_dx), int(nxm2), float(w0),
+         float(inv_alpha), float(inv_dw), int(nwm2), out)
+    return out
+
+
+def subcooler(LC, base, tx, d0, inv_dd, dscale, d, num, h_g_m, h_f_c, C_w, UA, dT, d_hi, iters: int,
+              finish: float):
+    """``Flowsheet._subcooler``'s Newton iteration from the start d (the same numbers to the bit):
+    per step ``_sc_pre``, numpy's ``exp`` of the 2k exponents, ``_sc_post``. Returns (m, h, d, ok)."""
+    f = lambda a: np.ascontiguousarray(a, dtype=float)      # noqa: E731
+    d = np.array(d, dtype=float)
+    num, h_g_m, h_f_c, C_w, UA, dT, d_hi = (f(a) for a in (num, h_g_m, h_f_c, C_w, UA, dT, d_hi))
+    base = np.ascontiguousarray(base, dtype=np.intp)
+    txv = np.ascontiguousarray(tx[:, 0], dtype=float)
+    k = d.shape[0]
+    h, h_T, g, m, dq, cp, C, step = (np.empty(k) for _ in range(8))
+    C_min, Cr, NTU, arg = (np.empty(2 * k) for _ in range(4))
+    for _ in range(iters):
+        _SC_PRE(LC, base, txv, d, float(d0), float(inv_dd), float(dscale), num, h_g_m, h_f_c, C_w, UA,
+                h, h_T, g, m, dq, cp, C, C_min, Cr, NTU, arg)
+        code = _SC_POST(np.exp(arg), C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, float(finish))
+        if code == 1:
+            # the rest of Newton's convergence is second order: finish with a first-order update
+            d_new = np.minimum(d - step, d_hi)
+            h = h + h_T * (d - d_new)
+            return num / (h_g_m - h), h, d_new, (d_new > 1e-6) & (d_new == d_new)
+        if code == 2:
+            break
+    small = np.abs(step) <= finish * d
+    d_new = np.where(small, np.minimum(d - step, d_hi), d)
+    h = h + h_T * (d - d_new)
+    return num / (h_g_m - h), h, d_new, small & (d_new > 1e-6)

@@ -7,6 +7,9 @@ used, so there is nothing to compare and these tests are skipped.
   curve draw as six scalars and as six per-row arrays), rows inside and outside the grid, beyond the
   speed range, NaN inputs: equal to the numpy search bit for bit;
 - stacked compressors (``model.analysis.stacked``) likewise, rows of four members in one call;
+- the saturation table, the isentropic / superheat lookups and the subcooler's Newton step: the
+  lookups on their ranges with NaN and out-of-range coordinates, the solver on the operating grid x
+  set points, equal to numpy to the bit;
 - a replay with the kernel gives the same windows as without it.
 """
 from __future__ import annotations

@@ -7,11 +7,16 @@
   curve evaluations a row);
 - the stacked compressors' curves (``stacked._View._curve``: eta_is and eta_vol of rows that each
   name their window's compressor, on its local grid where that covers);
-- the liquid table (``CycleTables.liq_raw``, the subcooler's inner loop).
+- the liquid table (``CycleTables.liq_raw``, the subcooler's inner loop);
+- the saturation table (``CycleTables.sat_raw``) and the isentropic / superheat-from-enthalpy
+  lookups (``CycleTables._derived``) around their ``exp`` and ``log1p``, which stay numpy's;
+- the subcooler's Newton step (``Flowsheet._subcooler``) in two halves around numpy's ``exp`` of
+  the effectiveness (``subcooler``: the same iteration, the same exits).
 
 Each computes every row with the same floating-point operations in the same order as the numpy
 version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``; ``_Tables.value_v``;
-the bicubic of ``liq_raw``), so its numbers are the numpy version's to the bit
+the bicubic of ``liq_raw``; the spline and Newton arithmetic of the others), so its numbers are
+the numpy version's to the bit
 (``tests/test_speedkernel.py``): a replay gives the same results with them or without them. Only
 pure arithmetic is compiled: numpy's ``exp``/``log`` (SIMD) differ from libm's in the last bit for
 some arguments, so the flowsheet's other steps stay in numpy. numba is an optional extra

@@ -348,8 +348,9 @@ class Flowsheet:
             d = np.where(d == d, d, 1.0)
         d_hi = np.minimum(dT, LIQ_D_MAX)
         if _kernels._SC_PRE is not None and np.ndim(d) == 1 and np.shape(row[0]) == np.shape(d):
-            return _kernels.subcooler(*tab.liq_kernel_args(row), d, num, h_g_m, h_f_c, C_w, UA, dT, d_hi,
-                                      SC_ITER, SC_FINISH)
+            converged, d, step, h, h_T = _kernels.subcooler(*tab.liq_kernel_args(row), d, num, h_g_m, h_f_c,
+                                                            C_w, UA, dT, d_hi, SC_ITER, SC_FINISH)
+            return (_sc_finish if converged else _sc_unfinished)(num, h_g_m, h, h_T, d, step, d_hi)
         k = len(d)
         C_w2, UA2 = np.concatenate([C_w, C_w]), np.concatenate([UA, UA])
         for _ in range(SC_ITER):
@@ -368,10 +369,7 @@ class Flowsheet:
             step = (m * dq - Q_e) / (dm * dq + m * h_T - dQ_dC * (dm * cp + m * (h_T - cp) / d))
             small = np.abs(step) <= SC_FINISH * d
             if small.all():
-                # the rest of Newton's convergence is second order: finish with a first-order update
-                d_new = np.minimum(d - step, d_hi)   # d_hi = T_c - T_sink,in where eps is 1 to round-off
-                h = h + h_T * (d - d_new)
-                return num / (h_g_m - h), h, d_new, (d_new > 1e-6) & (d_new == d_new)
+                return _sc_finish(num, h_g_m, h, h_T, d, step, d_hi)
             dn = d - step
             dn = np.where(dn == dn, dn, 0.5 * d)     # a row without a step (NaN upstream) keeps a
             #                                          valid table index (it fails: sc_ok False)
@@ -379,7 +377,22 @@ class Flowsheet:
             if not np.all(small | (step != step)):
                 continue
             break
-        small = np.abs(step) <= SC_FINISH * d
-        d_new = np.where(small, np.minimum(d - step, d_hi), d)
-        h = h + h_T * (d - d_new)
-        return num / (h_g_m - h), h, d_new, small & (d_new > 1e-6)
+        return _sc_unfinished(num, h_g_m, h, h_T, d, step, d_hi)
+
+
+def _sc_finish(num, h_g_m, h, h_T, d, step, d_hi):
+    """``Flowsheet._subcooler``'s result when every row's Newton step is below SC_FINISH of d: the
+    rest of Newton's convergence is second order, so a first-order update finishes it."""
+    d_new = np.minimum(d - step, d_hi)       # d_hi = T_c - T_sink,in where eps is 1 to round-off
+    h = h + h_T * (d - d_new)
+    return num / (h_g_m - h), h, d_new, (d_new > 1e-6) & (d_new == d_new)
+
+
+def _sc_unfinished(num, h_g_m, h, h_T, d, step, d_hi):
+    """``Flowsheet._subcooler``'s result when the iteration stopped with rows not converged (no
+    step, or SC_ITER steps): those rows keep d and fail (ok False); h, h_T and step are of the last
+    step's start, d after its update."""
+    small = np.abs(step) <= SC_FINISH * d
+    d_new = np.where(small, np.minimum(d - step, d_hi), d)
+    h = h + h_T * (d - d_new)
+    return num / (h_g_m - h), h, d_new, small & (d_new > 1e-6)

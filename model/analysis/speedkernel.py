@@ -493,7 +493,10 @@ def derived(C, T, lw, x0, inv_dx, nxm2, w0, inv_alpha, inv_dw, nwm2) -> np.ndarr
 def subcooler(LC, base, tx, d0, inv_dd, dscale, d, num, h_g_m, h_f_c, C_w, UA, dT, d_hi, iters: int,
               finish: float):
     """``Flowsheet._subcooler``'s Newton iteration from the start d (the same numbers to the bit):
-    per step ``_sc_pre``, numpy's ``exp`` of the 2k exponents, ``_sc_post``. Returns (m, h, d, ok)."""
+    per step ``_sc_pre``, numpy's ``exp`` of the 2k exponents, ``_sc_post``. Returns (converged, d,
+    step, h, h_T) as the numpy loop leaves them: converged when every row's step fell below
+    ``finish`` of d (d not yet updated by that step), else d updated and h, h_T, step of the last
+    step's start; ``vflowsheet._sc_finish`` / ``_sc_unfinished`` turn them into the result."""
     f = lambda a: np.ascontiguousarray(a, dtype=float)      # noqa: E731
     d = np.array(d, dtype=float)
     num, h_g_m, h_f_c, C_w, UA, dT, d_hi = (f(a) for a in (num, h_g_m, h_f_c, C_w, UA, dT, d_hi))
@@ -507,13 +510,7 @@ def subcooler(LC, base, tx, d0, inv_dd, dscale, d, num, h_g_m, h_f_c, C_w, UA, d
                 h, h_T, g, m, dq, cp, C, C_min, Cr, NTU, arg)
         code = _SC_POST(np.exp(arg), C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, float(finish))
         if code == 1:
-            # the rest of Newton's convergence is second order: finish with a first-order update
-            d_new = np.minimum(d - step, d_hi)
-            h = h + h_T * (d - d_new)
-            return num / (h_g_m - h), h, d_new, (d_new > 1e-6) & (d_new == d_new)
+            return True, d, step, h, h_T
         if code == 2:
             break
-    small = np.abs(step) <= finish * d
-    d_new = np.where(small, np.minimum(d - step, d_hi), d)
-    h = h + h_T * (d - d_new)
-    return num / (h_g_m - h), h, d_new, small & (d_new > 1e-6)
+    return False, d, step, h, h_T

@@ -225,6 +225,33 @@ def test_flowsheet_with_the_kernels_solves_to_the_bit(plant, kernel, monkeypatch
     assert got["status"].eq("ok").sum() > len(df) // 3 and got["status"].ne("ok").sum() > len(df) // 3
 
 
+def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
+    """numba installed but a kernel failing to compile: a RuntimeWarning naming the failure, every
+    kernel off (numpy's numbers), and no second attempt in the process."""
+    import numba
+    keep = {k: getattr(speedkernel, k) for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE",
+                                                 "_SC_POST", "_TRIED")}
+
+    def broken(*a, **k):
+        raise TypeError("no LLVM here")
+
+    try:
+        for k in keep:
+            setattr(speedkernel, k, None)
+        speedkernel._TRIED = False
+        monkeypatch.setattr(numba, "njit", broken)
+        with pytest.warns(RuntimeWarning, match=r"did not compile \(TypeError: no LLVM here\); replays run on numpy"):
+            assert speedkernel.enable() is False
+        assert not speedkernel.active() and speedkernel._SC_PRE is None and speedkernel._SAT is None
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert speedkernel.enable() is False          # tried once: no second warning
+    finally:
+        for k, v in keep.items():
+            setattr(speedkernel, k, v)
+
+
 def test_replay_with_the_kernel_gives_the_same_windows(plant, kernel, monkeypatch):
     from model.analysis.replay import replay
     from simulator.synthetic import Noise, Operation, Truth, generate

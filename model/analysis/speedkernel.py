@@ -27,6 +27,7 @@ numpy. ``_KERNEL`` is the switch for all of them.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -382,8 +383,12 @@ def enable() -> bool:
         _SC_PRE = jit(type(_sc_pre)(_sc_pre.__code__, glb, _sc_pre.__name__))
         _SC_POST = jit(_sc_post)
         _probe()
-    except Exception:            # noqa: BLE001 -- any numba failure: the numpy search stays
+    except Exception as exc:     # noqa: BLE001 -- any numba failure: the numpy search stays
         _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = None
+        # the same numbers either way, but a replay several times slower: say so once
+        warnings.warn(f"numba {getattr(numba, '__version__', '?')} is installed but hp-edge's compiled kernels "
+                      f"did not compile ({type(exc).__name__}: {exc}); replays run on numpy: the same "
+                      "numbers, slower", RuntimeWarning, stacklevel=2)
         return False
     return True
 

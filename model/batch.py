@@ -41,14 +41,46 @@ def numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
                         columns=columns)
 
 
-def matrix(df: pd.DataFrame, columns=INPUT_COLUMNS) -> np.ndarray:
+def matrix(df: "pd.DataFrame | InputColumns", columns=INPUT_COLUMNS) -> np.ndarray:
     """``df[list(columns)].to_numpy(dtype=float)`` column by column, without building the sub-frame
     (the windows' hot path): the same numbers in the same (Fortran) memory order, so that
     reductions over it add in the same order."""
     out = np.empty((len(columns), len(df)))
+    cols = df.cols if isinstance(df, InputColumns) else None
     for i, c in enumerate(columns):
-        out[i] = df[c].to_numpy(dtype=float)
+        out[i] = df[c].to_numpy(dtype=float) if cols is None else cols[c]
     return out.T
+
+
+class InputColumns:
+    """Rows for ``model.vcycle.solve_many`` as input columns (float arrays of one length) instead
+    of a DataFrame: what the solver reads of its rows, without pandas' cost per column and call
+    (the optimizer's evaluations of the same rows at many set points)."""
+    __slots__ = ("cols", "n")
+
+    def __init__(self, cols: dict) -> None:
+        self.cols = cols
+        self.n = len(next(iter(cols.values()))) if cols else 0
+
+    @classmethod
+    def of(cls, df: pd.DataFrame, columns=INPUT_COLUMNS) -> "InputColumns":
+        """``df``'s columns among ``columns`` as floats (``to_numpy(dtype=float)``, as the solver reads
+        a DataFrame)."""
+        return cls({c: df[c].to_numpy(dtype=float) for c in columns if c in df.columns})
+
+    def take(self, idx: np.ndarray) -> "InputColumns":
+        """The rows ``idx`` (new arrays)."""
+        return InputColumns({c: a[idx] for c, a in self.cols.items()})
+
+    @property
+    def columns(self):
+        return self.cols.keys()
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, c: str) -> np.ndarray:
+        return self.cols[c]
 
 
 def among(values: np.ndarray, choices) -> np.ndarray:

@@ -49,7 +49,7 @@ import pandas as pd
 from scipy.optimize import minimize_scalar
 
 from . import batch
-from .batch import INPUT_COLUMNS, among, frame_of, matrix, simulate_batch, solve_rows
+from .batch import INPUT_COLUMNS, InputColumns, among, frame_of, matrix, simulate_batch, solve_rows
 from .params import PlantParams
 from .units import BAR, Pa_to_barg
 
@@ -130,9 +130,32 @@ class Point:
     hs_saturated: bool              # every row HS-saturated
     _frame: pd.DataFrame | None     # per-row model outputs (None: built from ``cols``)
     beyond: float | None = None     # search: a better set point just outside the feasible set
-    vres: object = None             # the vectorised solver's result (model.vcycle.VResult), if any
+    _vres: object = None            # ``vres``, or (VResult, first row, end row) not taken yet
     cols: dict | None = None        # the frame's columns as arrays (model.vcycle.VResult.columns)
     index: object = None            # the frame's index, with ``cols``
+
+    @property
+    def vres(self):
+        """The vectorised solver's result of these rows (``model.vcycle.VResult``), if any. A
+        point of a call over several set points holds the call's result and its rows' range until
+        this is first read (most points' never is: only the nearest to a later call's set points
+        start it)."""
+        v = self._vres
+        if type(v) is tuple:
+            v = self._vres = _take(v[0], np.arange(v[1], v[2]))
+        return v
+
+    @vres.setter
+    def vres(self, v) -> None:
+        self._vres = v
+
+    @property
+    def has_vres(self) -> bool:
+        return self._vres is not None
+
+    def __getstate__(self):
+        self.vres       # noqa: B018 - a pickled point carries its own rows, not the whole call's
+        return self.__dict__
 
     @property
     def ok(self) -> bool:
@@ -205,6 +228,7 @@ class Evaluator:
         self.evals = 0
         self.solves = 0
         self._cache: dict[float | None, Point] = {}
+        self._in: InputColumns | None = None
         self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
         self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
         self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
@@ -217,7 +241,8 @@ class Evaluator:
             # (VResult, its rows): solutions of other rows at their own set points (e.g. the
             # condenser factor's), a start for these rows at theirs, each from the nearest
             self._seed = Evaluator._holding(seed[1], params, seed[0])
-        self._seed_map = nearest_rows(self.rows, self._seed.rows) if self._seed is not None else None
+        self._seed_map = nearest_rows(self._input_columns(), self._seed._input_columns()) \
+            if self._seed is not None else None
 
     @staticmethod
     def _holding(rows: pd.DataFrame, params: PlantParams, vres) -> "Evaluator":
@@ -311,7 +336,7 @@ class Evaluator:
         self.solves += k * n
         own = self._own_sp[idx] if self._own_sp is not None else np.full(n, np.nan)
         sp_all = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
-        rows = self.rows.iloc[np.tile(idx, k)]
+        rows = self._input_columns().take(np.tile(idx, k))
         guess, gidx = self._guesses(sps, idx)
         vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
                           guess_index=gidx)
@@ -322,10 +347,17 @@ class Evaluator:
         for j, sp in enumerate(sps):
             part = slice(j * n, (j + 1) * n)
             p = _point(sp, None, w, cols={c: v[part] for c, v in cols.items()}, index=index)
-            p.vres = _take(vres, np.arange(j * n, (j + 1) * n))
+            # a one-set-point call's result is the point's own; else taken when first read
+            p.vres = vres if k == 1 else (vres, j * n, (j + 1) * n)
             out.append(p)
         return out
 
+
+    def _input_columns(self) -> InputColumns:
+        """The rows' input columns as floats, read once (the solver's rows for every call)."""
+        if self._in is None:
+            self._in = InputColumns.of(self.rows)
+        return self._in
 
     def _guess_for(self, sp):
         """(VResult, row index into it) to start set point ``sp`` from: this evaluator's own at the
@@ -342,7 +374,7 @@ class Evaluator:
                     return p.vres, (np.arange(len(p.vres)) if rmap is None else rmap)
                 continue
             near = [(abs(x - sp), x) for x in ev._cache if x is not None and abs(x - sp) <= GUESS_BAR
-                    and ev._cache[x].vres is not None]
+                    and ev._cache[x].has_vres]
             if near:
                 v = ev._cache[min(near)[1]].vres
                 return v, (np.arange(len(v)) if rmap is None else rmap)
@@ -385,7 +417,7 @@ def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: lis
     guess, gidx = probe._guesses(list(sps), idx)
     own = probe._own_sp if probe._own_sp is not None else np.full(n, np.nan)
     sp_one = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
-    vres = solve_many(probe.rows.iloc[np.tile(idx, m * k)], params, p_m_sp=np.tile(sp_one, k),
+    vres = solve_many(probe._input_columns().take(np.tile(idx, m * k)), params, p_m_sp=np.tile(sp_one, k),
                       ls_mode=ls_mode, guess=guess, guess_index=None if guess is None else np.tile(gidx, k),
                       R_th_f=np.repeat(R, m * n),
                       deltas={key: np.repeat(np.asarray(a, dtype=float), m * n, axis=0)
@@ -402,9 +434,10 @@ def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: lis
     return out
 
 
-def nearest_rows(rows: pd.DataFrame, other: pd.DataFrame) -> np.ndarray:
+def nearest_rows(rows, other) -> np.ndarray:
     """For each row of ``rows`` the position of the nearest row of ``other`` in the standardised
-    inputs (INPUT_COLUMNS, scaled by ``other``'s spread or 1)."""
+    inputs (INPUT_COLUMNS, scaled by ``other``'s spread or 1). Both DataFrames or
+    ``model.batch.InputColumns``."""
     a = matrix(rows)
     b = matrix(other)
     sd = np.nanstd(np.vstack([a, b]), axis=0)
@@ -576,10 +609,19 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
             return -math.inf
         return p.COP if score is None else score(p)
 
+    def values(points: list) -> np.ndarray:
+        """``value`` of each point; a score with ``many`` (the advice's) scores them in one call."""
+        many = getattr(score, "many", None)
+        if many is None:
+            return np.array([value(p) for p in points])
+        keep = [p.ok and (feasible is None or feasible(p)) for p in points]
+        got = iter(many([p for p, k in zip(points, keep) if k]))
+        return np.array([next(got) if k else -math.inf for k in keep])
+
     grid = np.arange(lo, hi + 1e-9, coarse_step)
     if grid[-1] < hi - 1e-9:
         grid = np.append(grid, hi)
-    scan = np.array([value(p) for p in ev.at_many(list(grid))])
+    scan = values(ev.at_many(list(grid)))
     if not np.isfinite(scan).any():
         raise OptimizationError("no set point in the range solves every sample of the window"
                                 + (" within the trusted region" if feasible else ""))
@@ -596,7 +638,7 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     cands = [float(grid[i])]
     if b - a > xtol:
         fine = np.unique(np.append(np.arange(a, b + 1e-9, FINE_STEP), [a, b]))
-        fv = np.array([value(p) for p in ev.at_many(list(fine))])
+        fv = values(ev.at_many(list(fine)))
         k = int(np.flatnonzero(fv >= np.nanmax(fv) - PLATEAU_RTOL * abs(np.nanmax(fv)))[-1])
         cands.insert(0, float(fine[k]))
         if 0 < k < len(fine) - 1 and np.isfinite(fv[k - 1]) and np.isfinite(fv[k + 1]):

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .batch import INPUT_COLUMNS, OUTPUT_KEYS, among, inputs_from_row, result_row
+from .batch import INPUT_COLUMNS, OUTPUT_KEYS, InputColumns, among, inputs_from_row, result_row
 from .cycle import LS_MODES, LS_SPEED_LOOSE, InfeasibleOperation, ModelError, solve
 from .cycletables import get_cycle_tables
 from .fluid import get_fluid
@@ -191,22 +191,26 @@ def columns_frame(cols: dict[str, np.ndarray], index) -> pd.DataFrame:
 # --------------------------------------------------------------------------------------------------
 # solve
 # --------------------------------------------------------------------------------------------------
-def _inputs(rows: pd.DataFrame, p_m_sp, amb_bar: float):
+def _inputs(rows, p_m_sp, amb_bar: float):
+    """The rows' input columns as float arrays (rows: a DataFrame or ``model.batch.InputColumns``)."""
     missing = [c for c in INPUT_COLUMNS if c not in rows.columns and not (c == "p_m_sp" and p_m_sp is not None)]
     if missing:
         raise KeyError(f"input columns missing: {', '.join(missing)}")
     n = len(rows)
-    cols = {c: rows[c].to_numpy(dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
+    if isinstance(rows, InputColumns):      # already floats (arrays the caller does not reuse)
+        cols = {c: rows.cols[c] for c in INPUT_COLUMNS if c in rows.cols}
+    else:
+        cols = {c: rows[c].to_numpy(dtype=float) for c in INPUT_COLUMNS if c in rows.columns}
     if p_m_sp is not None:
         cols["p_m_sp"] = np.broadcast_to(np.asarray(p_m_sp, dtype=float), (n,)).copy()
     return cols
 
 
-def solve_many(rows: pd.DataFrame, params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
+def solve_many(rows: "pd.DataFrame | InputColumns", params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
                force_scalar=None, guess: "VResult | None" = None, guess_index=None, R_th_f=None,
                cond_factor=None, deltas: dict | None = None) -> VResult:
     """Solve every row of ``rows`` (canonical input columns ``model.batch.INPUT_COLUMNS``: degC,
-    m3/h, bar(g)); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
+    m3/h, bar(g); a DataFrame or ``model.batch.InputColumns``); ``p_m_sp`` [bar(g), scalar or per row] overrides the set-point column. ``ls_mode``
     as in ``model.cycle.solve``: "flag" (an LS speed out of range is a flagged row) or "float" (the
     LS saturates at its speed bound and T_source,out floats). ``force_scalar``: a boolean mask of rows
     to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys

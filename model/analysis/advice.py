@@ -151,17 +151,25 @@ def _operating_points(p: Point, params: PlantParams) -> dict:
             "HS": (p_c / p_m, p.col("N_HS_rpm") / params.comp_HS.N_nom)}
 
 
-def _distance(learner: CompressorLearner, params: PlantParams, offsets: dict, p: Point) -> float:
-    """The largest coverage distance (margin units) of an evaluation's rows over the learned
-    stages, offsets applied; 0 inside the covered hull."""
-    pts = _operating_points(p, params)
-    d = 0.0
+def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, points: list) -> list:
+    """Per evaluation of ``points`` (all ok): the largest coverage distance (margin units) of its
+    rows over the learned stages, offsets applied; 0 inside the covered hull. One
+    ``coverage_distance`` call per stage for the rows of all points (it is row by row: the same
+    numbers as a call per point)."""
+    if not points:
+        return []
+    d = np.zeros(len(points))
+    ops = [_operating_points(p, params) for p in points]
+    bounds = np.concatenate([[0], np.cumsum([len(p.col("p_m_bar")) for p in points])])
     for st in STAGES:
         if learner.learned(st, "eta_is"):
-            pi, n = pts[st]
             d_pi, d_n = offsets.get(st, (0.0, 0.0))
-            d = max(d, float(np.max(learner.coverage_distance(st, pi - d_pi, n - d_n))))
-    return d
+            pi = np.concatenate([o[st][0] for o in ops])
+            n = np.concatenate([o[st][1] for o in ops])
+            dist = learner.coverage_distance(st, pi - d_pi, n - d_n)
+            for k in range(len(points)):
+                d[k] = max(d[k], float(np.max(dist[bounds[k]:bounds[k + 1]])))
+    return [float(x) for x in d]
 
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
@@ -213,12 +221,11 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
     if learner is None or not any(learner.learned(st, "eta_is") for st in STAGES):
         return None
     amb = params.ambient_pressure / 1e5
-    path = []
     xs = [None, *(float(x) for x in np.arange(lo, hi + 1e-9, s.path_step_bar))]
-    for x, p in zip(xs, ev.at_many(xs)):
-        if p.ok:
-            path.append((_pm_barg(p, ev.w, amb), _distance(learner, params, offsets, p),
-                         math.nan if x is None else float(x)))
+    done = [(x, p) for x, p in zip(xs, ev.at_many(xs)) if p.ok]
+    dist = _distances(learner, params, offsets, [p for _, p in done])
+    path = [(_pm_barg(p, ev.w, amb), d, math.nan if x is None else float(x))
+            for (x, p), d in zip(done, dist)]
     return stretch_from_path(path, s)
 
 
@@ -297,6 +304,33 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
     return float(100.0 * np.mean(np.sqrt(var)))
 
 
+def _shape_many(learner, params: PlantParams, offsets: dict, s: AdviceSettings, points: list) -> list:
+    """``_shape_at`` of each of ``points``, with one ``shape_sd`` call per stage for the rows of
+    all of them (it is row by row: the same numbers as a call per point)."""
+    if learner is None or not s.shape_k:
+        return [0.0] * len(points)
+    ok = [p for p in points if p.ok]
+    if not ok:
+        return [0.0] * len(points)
+    pts = [_operating_points(p, params) for p in ok]
+    cat = lambda get: np.concatenate([get(k) for k in range(len(ok))])  # noqa: E731
+    W = {st: cat(lambda k, st=st: ok[k].col(f"W_{st}_kW")) for st in STAGES}
+    tot = W["LS"] + W["HS"]
+    var = np.zeros(len(tot))
+    for st in STAGES:
+        if not learner.learned(st, "eta_is"):
+            continue
+        pi, n = cat(lambda k, st=st: pts[k][st][0]), cat(lambda k, st=st: pts[k][st][1])
+        d_pi, d_n = offsets.get(st, (0.0, 0.0))
+        u = s.shape_k * learner.shape_sd(st, pi - d_pi, n - d_n)
+        eta = cat(lambda k, st=st: ok[k].col(f"eta_is_{st}"))
+        var += (W[st] / tot * u / eta) ** 2
+    sd = np.sqrt(var)
+    bounds = np.concatenate([[0], np.cumsum([len(p.col("W_LS_kW")) for p in ok])])
+    got = iter([float(100.0 * np.mean(sd[bounds[k]:bounds[k + 1]])) for k in range(len(ok))])
+    return [next(got) if p.ok else 0.0 for p in points]
+
+
 def _scorer(learner, params: PlantParams, offsets: dict, s: AdviceSettings):
     """What the search maximises: the COP less ``search_k`` shape-error standard deviations
     (None: the COP itself)."""
@@ -305,6 +339,12 @@ def _scorer(learner, params: PlantParams, offsets: dict, s: AdviceSettings):
 
     def score(p: Point) -> float:
         return p.COP * (1.0 - 0.01 * s.search_k * _shape_at(learner, params, offsets, s, p))
+
+    def many(points: list) -> list:
+        """``score`` of each of ``points`` (``_shape_many``: the same numbers)."""
+        return [p.COP * (1.0 - 0.01 * s.search_k * u)
+                for p, u in zip(points, _shape_many(learner, params, offsets, s, points))]
+    score.many = many
     return score
 
 

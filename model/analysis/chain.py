@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import pandas as pd
@@ -186,9 +186,8 @@ class WindowResult:
 
     def row(self) -> dict:
         """A windows.csv row: units in the names (%, bar(g), K/kW), nrmse_* as fractions."""
-        d = asdict(self)
-        d.pop("detail")
-        return d
+        # the fields but ``detail`` (all plain values: ``asdict`` would deep-copy detail first)
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "detail"}
 
     def advisory_values(self) -> dict:
         """Advisory block field name -> value in the block's unit (see config/gateway.yaml)."""

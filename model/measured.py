@@ -138,12 +138,12 @@ def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -
            if "cip" in df.columns else np.zeros(n))
     on = (running > 0.5) & (np.nan_to_num(W) > MIN_POWER_KW)
     # ramping: the first SETTLE_MIN samples after a start, and fast power changes
-    ramp = np.zeros(n, dtype=bool)
-    since_start = SETTLE_MIN
-    for i in range(n):
-        since_start = since_start + 1 if (on[i] and cip[i] < 0.5) else 0
-        if since_start <= SETTLE_MIN:
-            ramp[i] = True
+    # (minutes counted from a start; a record that begins running counts as settled): a sample is
+    # ramping unless the run of running-without-CIP samples it ends is longer than SETTLE_MIN
+    run = on & (cip < 0.5)
+    idx = np.arange(n)
+    last_stop = np.maximum.accumulate(np.where(run, -1, idx)) if n else idx
+    ramp = ~run | ((last_stop >= 0) & (idx - last_stop <= SETTLE_MIN))
     with np.errstate(divide="ignore", invalid="ignore"):
         dW = np.abs(np.diff(W, prepend=np.nan)) / W
     ramp |= np.nan_to_num(dW, nan=0.0) > RAMP_REL_PER_MIN
@@ -153,18 +153,12 @@ def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -
         "inconsistent: T_source_out not above evaporating temperature"
     physical[~(num["T_sink_out"] > num["T_sink_in"])] = "inconsistent: sink not heated"
     physical[prop_fail] = "inconsistent: refrigerant state outside property range"
+    # the first reason that applies, in this order
+    why = reason.to_numpy(dtype=object)
     final = np.full(n, "", dtype=object)
-    for i in range(n):
-        if cip[i] > 0.5:
-            final[i] = "cip"
-        elif not on[i]:
-            final[i] = "off"
-        elif reason.iat[i]:
-            final[i] = reason.iat[i]
-        elif physical[i]:
-            final[i] = physical[i]
-        elif ramp[i]:
-            final[i] = "ramping"
+    for cond, val in reversed(((cip > 0.5, "cip"), (~on, "off"), (why != "", why),
+                               (physical != "", physical), (ramp, "ramping"))):
+        final = np.where(cond, val, final)
     if "quality" in df.columns:   # upstream marks (gateway: stale, frozen, comm fault)
         q = df["quality"].fillna("").astype(str).to_numpy()
         final = np.where((final == "") & (q != ""), q, final)

@@ -133,6 +133,15 @@ def phi(t, k: float):
     return -np.expm1(-k * t) / k
 
 
+def phi_many(t, ks) -> np.ndarray:
+    """``phi`` for each k of ``ks`` (K, n): the same element operations in one array."""
+    t = np.asarray(t, dtype=float)
+    kc = np.asarray(ks, dtype=float)[:, None]
+    zero = kc == 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(zero, t, -np.expm1(-kc * t) / np.where(zero, 1.0, kc))
+
+
 def dphi_dk(t, k: float):
     """d phi_k(t) / dk [day^2]; a series near k t = 0 (where the closed form cancels)."""
     t = np.asarray(t, dtype=float)
@@ -396,7 +405,7 @@ def _ls_many(ks, t, y, sw, prior_row=None):
     y_inf pseudo-observation where k > 0 (prior_row = (weight, y_inf - floor)).
     Returns arrays (a0, r0, ssr of the data rows)."""
     ks = np.atleast_1d(np.asarray(ks, dtype=float))
-    P = np.stack([phi(t, k) for k in ks])                       # (K, n)
+    P = phi_many(t, ks)                                         # (K, n)
     w2 = sw * sw
     G00 = np.full(len(ks), w2.sum())
     G01 = P @ w2

@@ -1,0 +1,160 @@
+"""The replay's faster paths give the same numbers to the bit as the plain ones they replace
+(issue #12): rows as input columns instead of a DataFrame, a point's solver result taken when
+first read, the trusted stretch's distances and the search's shape scores for many points in one
+call, the forecast's phi for many k at once, the sample usability without a Python loop."""
+from __future__ import annotations
+
+import math
+import pickle
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from model.analysis.advice import AdviceSettings, _distances, _operating_points, _scorer, _shape_at, _shape_many
+from model.analysis.compressors import CompressorLearner, observe
+from model.analysis.forecast import phi, phi_many
+from model.batch import INPUT_COLUMNS, InputColumns, matrix
+from model.measured import RAMP_REL_PER_MIN, SETTLE_MIN, process
+from model.optimize import Evaluator, representative
+from model.vcycle import solve_many, take_rows
+
+
+@pytest.fixture(scope="module")
+def learned(plant):
+    """Half a day of the simulator at 16 then 13 bar(g), its usable samples, a learner on them and
+    an evaluator of 8 representative rows at 12 set points (some outside the covered region)."""
+    from simulator.config import load_simulator_config
+    from simulator.export import export_history
+    cfg = load_simulator_config()
+    cfg = replace(cfg, control=replace(cfg.control, p_m_sp_schedule=((0.0, 16.0), (0.25, 13.0))))
+    hist = export_history(0.5, cfg=cfg).history
+    use = process(hist, plant)["usable"].to_numpy()
+    data = hist.loc[use].reset_index(drop=True)
+    learner = CompressorLearner(plant)
+    learner.update(observe(data.assign(timestamp=pd.to_datetime(data["timestamp"], utc=True)), plant))
+    rows, w = representative(data[list(INPUT_COLUMNS)].astype(float), 8)
+    ev = Evaluator(rows, w, plant)
+    pts = ev.at_many([None, *np.arange(8.0, 20.0, 1.0)])
+    return data, learner, ev, pts
+
+
+def test_rows_as_input_columns_solve_as_the_dataframe(learned, plant):
+    data, *_ = learned
+    rows = data[list(INPUT_COLUMNS)].iloc[::7].reset_index(drop=True)
+    sp = np.linspace(9.0, 18.0, len(rows))
+    a = solve_many(rows, plant, p_m_sp=sp).frame()
+    b = solve_many(InputColumns.of(rows), plant, p_m_sp=sp).frame()
+    pd.testing.assert_frame_equal(a, b, check_exact=True)
+    assert np.array_equal(matrix(rows), matrix(InputColumns.of(rows)), equal_nan=True)
+
+
+def test_a_points_solver_result_is_its_rows_of_the_call_and_pickles_alone(learned):
+    _, _, ev, pts = learned
+    n = len(ev.rows)
+    p = pts[3]
+    assert type(p._vres) is tuple                # not taken yet
+    whole, a, b = p._vres
+    assert (a, b) == (3 * n, 4 * n) and len(whole) == len(pts) * n
+    expected = take_rows(whole, np.arange(a, b))
+    got = p.vres
+    assert len(got) == n
+    for k, v in expected.values.items():
+        assert np.array_equal(v, got.values[k], equal_nan=True), k
+    q = pickle.loads(pickle.dumps(pts[5]))
+    assert len(q.vres) == n and len(q.vres.status) == n
+
+
+def test_distances_and_shape_scores_of_many_points_equal_point_by_point(learned, plant):
+    _, learner, ev, pts = learned
+    offsets = {"LS": (0.01, -0.02), "HS": (0.0, 0.01)}
+    ok = [p for p in pts if p.ok]
+    assert len(ok) >= 8
+    # point by point, as trusted_stretch used to compute them
+    one = []
+    for p in ok:
+        op = _operating_points(p, plant)
+        d = 0.0
+        for st in ("LS", "HS"):
+            if learner.learned(st, "eta_is"):
+                pi, n = op[st]
+                d_pi, d_n = offsets[st]
+                d = max(d, float(np.max(learner.coverage_distance(st, pi - d_pi, n - d_n))))
+        one.append(d)
+    many = _distances(learner, plant, offsets, ok)
+    assert many == one                           # exactly
+    assert min(one) <= 1.0 < max(one)            # within the margin and beyond it
+    s = AdviceSettings()
+    assert s.shape_k and s.search_k
+    shapes = _shape_many(learner, plant, offsets, s, pts)
+    assert shapes == [_shape_at(learner, plant, offsets, s, p) for p in pts]
+    assert len(set(shapes)) > 3
+    score = _scorer(learner, plant, offsets, s)
+    assert score.many(ok) == [score(p) for p in ok]
+    assert _shape_many(None, plant, offsets, s, pts) == [0.0] * len(pts)
+
+
+def test_phi_of_many_k_is_phi_of_each():
+    t = np.array([0.0, 0.1, 1.0, 3.7, 20.0, 140.0])
+    ks = np.concatenate([[0.0], np.geomspace(1e-5, 5.0, 40)])
+    P = phi_many(t, ks)
+    assert P.tobytes() == np.stack([phi(t, k) for k in ks]).tobytes()
+
+
+def _usable_reasons_by_loop(h: pd.DataFrame, on: np.ndarray, cip: np.ndarray, W: np.ndarray,
+                            reason: np.ndarray, physical: np.ndarray) -> np.ndarray:
+    """The reasons as ``process`` assigned them sample by sample before (the reference)."""
+    n = len(h)
+    ramp = np.zeros(n, dtype=bool)
+    since = SETTLE_MIN
+    for i in range(n):
+        since = since + 1 if (on[i] and cip[i] < 0.5) else 0
+        ramp[i] = since <= SETTLE_MIN
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dW = np.abs(np.diff(W, prepend=np.nan)) / W
+    ramp |= np.nan_to_num(dW, nan=0.0) > RAMP_REL_PER_MIN
+    out = np.full(n, "", dtype=object)
+    for i in range(n):
+        if cip[i] > 0.5:
+            out[i] = "cip"
+        elif not on[i]:
+            out[i] = "off"
+        elif reason[i]:
+            out[i] = reason[i]
+        elif physical[i]:
+            out[i] = physical[i]
+        elif ramp[i]:
+            out[i] = "ramping"
+    return out
+
+
+@pytest.mark.parametrize("start_running", [True, False])
+def test_sample_usability_equals_the_sample_by_sample_rules(learned, plant, start_running):
+    """Starts, stops, CIP flags (and a NaN one), missing and out-of-range values: the same reason
+    for every sample as the rules applied one sample after the other."""
+    data, *_ = learned
+    h = data.iloc[:600].copy().reset_index(drop=True)
+    rng = np.random.default_rng(3)
+    for a in rng.integers(0, 580, 8):
+        h.loc[a:a + rng.integers(1, 15), "running"] = 0
+    h.loc[rng.integers(0, 600, 6), "cip"] = 1
+    h.loc[int(rng.integers(0, 600)), "cip"] = np.nan
+    h.loc[rng.integers(0, 600, 4), "T_sink_in"] = np.nan
+    h.loc[rng.integers(0, 600, 4), "T_sink_out"] = 500.0
+    h.loc[0, "running"] = 1 if start_running else 0
+    got = process(h, plant)
+    on = (pd.to_numeric(h["running"]).to_numpy() > 0.5) & (np.nan_to_num(
+        h["W_LS"].to_numpy(float) + h["W_HS"].to_numpy(float)) > 20.0)
+    cip = pd.to_numeric(h["cip"]).to_numpy(float)
+    W = h["W_LS"].to_numpy(float) + h["W_HS"].to_numpy(float)
+    # the range and physical reasons are what process found (their own code is unchanged): take
+    # them from rows where they are the reason, and check the order of the rules around them
+    from model.measured import DEFAULT_RANGES, _range_reasons
+    rng_reason = _range_reasons(h, DEFAULT_RANGES).to_numpy(dtype=object)
+    phys = np.where(~(h["T_sink_out"].to_numpy(float) > h["T_sink_in"].to_numpy(float)),
+                    "inconsistent: sink not heated", "").astype(object)
+    expected = _usable_reasons_by_loop(h, on, cip, W, rng_reason, phys)
+    assert list(got["reason"]) == list(expected)
+    assert set(got["reason"]) >= {"", "off", "cip", "ramping"}
+    assert math.isclose(got["usable"].mean(), np.mean(expected == ""))

@@ -26,13 +26,19 @@ to 1e-11 relative, h to 1e-6 J/kg, T_sat(p) to 1e-9 K; vapour h to 1e-3 J/kg up 
 superheat (3e-3 J/kg near saturation above 370 K), 2e-2 J/kg beyond (1e-9 relative), s to 1e-5
 J/kg/K, rho to 1e-8 relative; the isentropic h to 3e-3 J/kg and T from h to 1e-6 K; liquid h to
 2e-3 J/kg. Outside the tables' ranges the functions return NaN: the caller solves those rows with
-the scalar HEOS path. The tables are built once per process from HEOS (~1.5 s CPU) and are
-deterministic. SI units: K, Pa, J/kg, J/kg/K, kg/m^3.
+the scalar HEOS path. The tables are built from HEOS (~0.9 s CPU) and are deterministic; a
+process keeps them in a cache file that later processes read (``cache_file``, ~30 MB).
+SI units: K, Pa, J/kg, J/kg/K, kg/m^3.
 """
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
+import tempfile
 import threading
+from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -426,15 +432,89 @@ class CycleTables:
 
 _LOCK = threading.Lock()
 _TABLES: dict[str, CycleTables] = {}
+CACHE_ENV = "HP_EDGE_CACHE_DIR"     # where built tables are kept ("off": nowhere)
+
+
+def cache_file(name: str) -> Path | None:
+    """The file the tables of fluid ``name`` are kept in between processes: in ``$HP_EDGE_CACHE_DIR``
+    (``off``: none), else ``$XDG_CACHE_HOME/hp-edge``, else ``~/.cache/hp-edge``. Its name carries
+    a digest of the code that builds the tables (this module, ``model.fluid``) and of CoolProp's and
+    SciPy's versions: a table built by other code or other property data is never read."""
+    d = os.environ.get(CACHE_ENV, "")
+    if d.strip().lower() == "off":
+        return None
+    if not d:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        d = os.path.join(base, "hp-edge")
+    import CoolProp
+    import scipy
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for part in ((here / "cycletables.py").read_bytes(), (here / "fluid.py").read_bytes(),
+                 CoolProp.__version__.encode(), scipy.__version__.encode(), name.encode()):
+        h.update(part)
+    return Path(d) / f"cycletables-{name}-{h.hexdigest()[:16]}.npz"
+
+
+def _load(path: Path) -> CycleTables:
+    """Tables saved by ``_save`` (no pickle: arrays and typed scalars only)."""
+    with np.load(path, allow_pickle=False) as z:
+        t = CycleTables.__new__(CycleTables)
+        kinds = dict(zip(z["__names__"].tolist(), z["__kinds__"].tolist()))
+        for k, kind in kinds.items():
+            a = z[k]
+            setattr(t, k, a if kind == "array" else str(a) if kind == "str" else int(a) if kind == "int"
+                    else float(a) if kind == "float" else np.float64(a))
+    return t
+
+
+def _save(t: CycleTables, path: Path) -> None:
+    """``t`` into ``path`` atomically (a temporary file beside it, then renamed)."""
+    arrays, kinds = {}, {}
+    for k, v in vars(t).items():
+        kinds[k] = ("array" if isinstance(v, np.ndarray) else "str" if isinstance(v, str)
+                    else "int" if type(v) is int else "float" if type(v) is float else "float64")
+        arrays[k] = np.asarray(v)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, __names__=np.array(list(kinds)), __kinds__=np.array(list(kinds.values())), **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _load_or_build(name: str) -> CycleTables:
+    """The tables from the cache file when it holds them, else built (~1 s) and kept there when the
+    storage lets us: a cache that cannot be read or written (read-only, locked, full, corrupt) costs
+    the build, nothing else."""
+    try:
+        path = cache_file(name)
+    except OSError:
+        path = None
+    if path is not None and path.is_file():
+        try:
+            return _load(path)
+        except Exception:       # noqa: BLE001 - unreadable or damaged: built again below
+            pass
+    t = CycleTables(name)
+    if path is not None:
+        with contextlib.suppress(Exception):
+            _save(t, path)
+    return t
 
 
 def get_cycle_tables(name: str = "Ammonia") -> CycleTables:
-    """The fluid's tables, built on first use in this process (thread-safe; read-only after)."""
+    """The fluid's tables, built on first use in this process or read from the cache file an
+    earlier process left (``cache_file``; the same arrays to the bit); thread-safe, read-only."""
     t = _TABLES.get(name)
     if t is None:
         with _LOCK:
             t = _TABLES.get(name)
             if t is None:
-                t = _TABLES[name] = CycleTables(name)
+                t = _TABLES[name] = _load_or_build(name)
                 release_heap()      # the build's freed heap: ~45 MB of the gateway's RSS
     return t

@@ -203,6 +203,9 @@ def test_the_unit_file_is_hardened():
                        "ProcSubset": "pid", "RemoveIPC": "yes", "StateDirectory": "hp-edge",
                        "RestartPreventExitStatus": "2"}.items():
         assert directives.get(key) == value, key
+    # the one writable place besides the state: the tables' cache (model.cycletables.cache_file)
+    assert directives.get("CacheDirectory") == "hp-edge"
+    assert "Environment=HP_EDGE_CACHE_DIR=/var/cache/hp-edge" in UNIT.splitlines()
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")

@@ -35,7 +35,7 @@ def test_the_daemon_imports_no_optional_extra_and_not_scipy_stats():
     import sys
     code = ("import sys, edge.service, edge.loop, model.analysis.chain; "
             "print(sorted(m for m in ('scipy.stats', 'matplotlib', 'dask', 'distributed', 'paho', 'numba',"
-            " 'llvmlite') "
+            " 'llvmlite', 'threadpoolctl') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          cwd=MODEL.parent)

@@ -504,6 +504,9 @@ def _load_or_build(name: str) -> CycleTables:
     if path is not None:
         with contextlib.suppress(Exception):
             _save(t, path)
+            for old in path.parent.glob(f"cycletables-{name}-*.npz"):   # earlier code's, never read again
+                if old != path:
+                    old.unlink()
     return t
 
 

@@ -62,9 +62,15 @@ def test_storage_that_cannot_keep_the_tables_costs_the_build_only(built, tmp_pat
     _same(built, ct._load_or_build("Ammonia"))
 
 
-def test_the_file_name_follows_the_code_and_the_property_data(tmp_path, monkeypatch):
+def test_the_file_name_follows_the_code_and_the_property_data(built, tmp_path, monkeypatch):
     monkeypatch.setenv(ct.CACHE_ENV, str(tmp_path))
     a = ct.cache_file("Ammonia")
+    stale = tmp_path / "cycletables-Ammonia-0123456789abcdef.npz"     # an earlier version's
+    stale.write_bytes(b"old")
+    other = tmp_path / "cycletables-Water-0123456789abcdef.npz"       # another fluid's
+    other.write_bytes(b"other")
+    ct._load_or_build("Ammonia")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([a.name, other.name])
     import CoolProp
     monkeypatch.setattr(CoolProp, "__version__", CoolProp.__version__ + ".other")
     assert ct.cache_file("Ammonia") != a

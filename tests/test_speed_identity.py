@@ -87,7 +87,22 @@ def test_distances_and_shape_scores_of_many_points_equal_point_by_point(learned,
     assert min(one) <= 1.0 < max(one)            # within the margin and beyond it
     s = AdviceSettings()
     assert s.shape_k and s.search_k
+
+    def shape_one(p):                            # _shape_at as it was written for one point
+        if not p.ok:
+            return 0.0
+        op = _operating_points(p, plant)
+        W = {st: p.col(f"W_{st}_kW") for st in ("LS", "HS")}
+        tot = W["LS"] + W["HS"]
+        var = np.zeros(len(tot))
+        for st in ("LS", "HS"):
+            if learner.learned(st, "eta_is"):
+                pi, n = op[st]
+                u = s.shape_k * learner.shape_sd(st, pi - offsets[st][0], n - offsets[st][1])
+                var += (W[st] / tot * u / p.col(f"eta_is_{st}")) ** 2
+        return float(100.0 * np.mean(np.sqrt(var)))
     shapes = _shape_many(learner, plant, offsets, s, pts)
+    assert shapes == [shape_one(p) for p in pts]
     assert shapes == [_shape_at(learner, plant, offsets, s, p) for p in pts]
     assert len(set(shapes)) > 3
     score = _scorer(learner, plant, offsets, s)

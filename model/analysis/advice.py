@@ -285,45 +285,29 @@ def _shape_at(learner, params: PlantParams, offsets: dict, s: AdviceSettings, p:
     are thin or left behind: per row and stage an eta_is error of ``shape_k`` x
     ``CompressorLearner.shape_sd`` there (prior_sd x the prior's share of the curve, and the
     extrapolation past the covered bins), as a relative error of the stage's work, weighted by
-    the stage's share of the work; the stages in quadrature, the rows averaged (one curve: their errors go together). 0
-    without learned curves or with shape_k 0."""
-    if learner is None or not s.shape_k or not p.ok:
-        return 0.0
-    pts = _operating_points(p, params)
-    W = {st: p.col(f"W_{st}_kW") for st in STAGES}
-    tot = W["LS"] + W["HS"]
-    var = np.zeros(len(tot))
-    for st in STAGES:
-        if not learner.learned(st, "eta_is"):
-            continue
-        pi, n = pts[st]
-        d_pi, d_n = offsets.get(st, (0.0, 0.0))
-        u = s.shape_k * learner.shape_sd(st, pi - d_pi, n - d_n)
-        eta = p.col(f"eta_is_{st}")
-        var += (W[st] / tot * u / eta) ** 2
-    return float(100.0 * np.mean(np.sqrt(var)))
+    the stage's share of the work; the stages in quadrature, the rows averaged (one curve: their
+    errors go together). 0 without learned curves, with shape_k 0 or where a row is not solved."""
+    return _shape_many(learner, params, offsets, s, [p])[0]
 
 
 def _shape_many(learner, params: PlantParams, offsets: dict, s: AdviceSettings, points: list) -> list:
     """``_shape_at`` of each of ``points``, with one ``shape_sd`` call per stage for the rows of
     all of them (it is row by row: the same numbers as a call per point)."""
-    if learner is None or not s.shape_k:
-        return [0.0] * len(points)
     ok = [p for p in points if p.ok]
-    if not ok:
+    if learner is None or not s.shape_k or not ok:
         return [0.0] * len(points)
-    pts = [_operating_points(p, params) for p in ok]
-    cat = lambda get: np.concatenate([get(k) for k in range(len(ok))])  # noqa: E731
-    W = {st: cat(lambda k, st=st: ok[k].col(f"W_{st}_kW")) for st in STAGES}
+    ops = [_operating_points(p, params) for p in ok]
+    W = {st: np.concatenate([p.col(f"W_{st}_kW") for p in ok]) for st in STAGES}
     tot = W["LS"] + W["HS"]
     var = np.zeros(len(tot))
     for st in STAGES:
         if not learner.learned(st, "eta_is"):
             continue
-        pi, n = cat(lambda k, st=st: pts[k][st][0]), cat(lambda k, st=st: pts[k][st][1])
+        pi = np.concatenate([o[st][0] for o in ops])
+        n = np.concatenate([o[st][1] for o in ops])
         d_pi, d_n = offsets.get(st, (0.0, 0.0))
         u = s.shape_k * learner.shape_sd(st, pi - d_pi, n - d_n)
-        eta = cat(lambda k, st=st: ok[k].col(f"eta_is_{st}"))
+        eta = np.concatenate([p.col(f"eta_is_{st}") for p in ok])
         var += (W[st] / tot * u / eta) ** 2
     sd = np.sqrt(var)
     bounds = np.concatenate([[0], np.cumsum([len(p.col("W_LS_kW")) for p in ok])])

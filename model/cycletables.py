@@ -38,6 +38,7 @@ import math
 import os
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -487,6 +488,22 @@ def _save(t: CycleTables, path: Path) -> None:
         raise
 
 
+STALE_TMP_S = 600.0     # a temporary file this old is a write that was killed, not one under way
+
+
+def _remove_stale(path: Path, name: str) -> None:
+    """Beside the file just written: the fluid's files of earlier code (never read again) and the
+    temporary files of writes killed half-way (each up to ~33 MB; older than STALE_TMP_S, so that
+    another process's write under way is left alone)."""
+    now = time.time()
+    for old in path.parent.glob(f"cycletables-{name}-*"):
+        if old == path:
+            continue
+        with contextlib.suppress(OSError):
+            if old.suffix == ".npz" or now - old.stat().st_mtime > STALE_TMP_S:
+                old.unlink()
+
+
 def _load_or_build(name: str) -> CycleTables:
     """The tables from the cache file when it holds them, else built (~1 s) and kept there when the
     storage lets us: a cache that cannot be read or written (read-only, locked, full, corrupt) costs
@@ -504,9 +521,7 @@ def _load_or_build(name: str) -> CycleTables:
     if path is not None:
         with contextlib.suppress(Exception):
             _save(t, path)
-            for old in path.parent.glob(f"cycletables-{name}-*.npz"):   # earlier code's, never read again
-                if old != path:
-                    old.unlink()
+            _remove_stale(path, name)
     return t
 
 

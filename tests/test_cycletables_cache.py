@@ -3,6 +3,9 @@ arrays to the bit; storage that cannot keep it (a damaged file, a directory that
 created, the cache switched off) costs the build and nothing else."""
 from __future__ import annotations
 
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -69,8 +72,13 @@ def test_the_file_name_follows_the_code_and_the_property_data(built, tmp_path, m
     stale.write_bytes(b"old")
     other = tmp_path / "cycletables-Water-0123456789abcdef.npz"       # another fluid's
     other.write_bytes(b"other")
+    killed = tmp_path / (a.name + ".k1ll3d")                          # a write killed half-way
+    killed.write_bytes(b"half")
+    os.utime(killed, (time.time() - ct.STALE_TMP_S - 60,) * 2)
+    running = tmp_path / (a.name + ".runn1n")                         # another process's, under way
+    running.write_bytes(b"part")
     ct._load_or_build("Ammonia")
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([a.name, other.name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([a.name, other.name, running.name])
     import CoolProp
     monkeypatch.setattr(CoolProp, "__version__", CoolProp.__version__ + ".other")
     assert ct.cache_file("Ammonia") != a

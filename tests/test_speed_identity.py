@@ -175,9 +175,11 @@ def test_sample_usability_equals_the_sample_by_sample_rules(learned, plant, star
     assert math.isclose(got["usable"].mean(), np.mean(expected == ""))
 
 
-def test_a_replay_holds_blas_to_one_thread_and_gives_it_back():
-    """model.analysis.replay.one_blas_thread (threadpoolctl, the fast extra)."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+def test_a_replay_holds_blas_to_one_thread_and_gives_it_back(monkeypatch):
+    """model.analysis.replay.one_blas_thread (threadpoolctl, the fast extra, which make test
+    installs); without threadpoolctl it changes nothing and says nothing."""
+    import sys
+    import threadpoolctl
     from model.analysis.replay import one_blas_thread
     before = [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
     assert before                                     # numpy's BLAS is loaded
@@ -185,3 +187,7 @@ def test_a_replay_holds_blas_to_one_thread_and_gives_it_back():
         assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] \
             == [1] * len(before)
     assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] == before
+    monkeypatch.setitem(sys.modules, "threadpoolctl", None)      # not installed
+    with one_blas_thread():
+        assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] \
+            == before

@@ -214,3 +214,26 @@ def test_gateway_and_cli_do_not_import_dask():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                           cwd=ROOT, env=_env())
     assert proc.returncode == 0, proc.stderr
+
+
+# ---- (e) the embedded cluster's workers ----------------------------------------------------------------
+def test_embedded_cluster_workers_run_without_dasks_memory_trimming():
+    """distributed's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 (4.6x the page faults of
+    a replay); the embedded cluster's workers start without it and without the profiler, and
+    starting the cluster leaves this process's environment as it was (the nanny writes the
+    pre-spawn variables into it)."""
+    code = ("import os, edge.fleet as F\n"
+            "def probe():\n"
+            "    import os, dask\n"
+            "    return (os.environ.get('MALLOC_TRIM_THRESHOLD_'), dask.config.get('distributed.worker.profile.enabled'),\n"
+            "            os.environ.get('OPENBLAS_NUM_THREADS'))\n"
+            "if __name__ == '__main__':\n"
+            "    with F.Cluster('local', 2) as c:\n"
+            "        got = sorted(c.run(probe).values())\n"
+            "    print(got, os.environ.get('MALLOC_TRIM_THRESHOLD_'))\n")
+    env = _env()
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=FLEET_TIMEOUT_S,
+                          cwd=ROOT, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "[(None, False, '1'), (None, False, '1')] None"

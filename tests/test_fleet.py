@@ -237,3 +237,34 @@ def test_embedded_cluster_workers_run_without_dasks_memory_trimming():
                           cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip() == "[(None, False, '1'), (None, False, '1')] None"
+
+
+# ---- (f) the longest plants first ------------------------------------------------------------------------
+def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_plants_yaml_order(tmp_path):
+    from concurrent.futures import Future
+
+    from edge.fleet import PlantEntry, run_fleet, submission_order
+    sizes = {"a": 1000, "b": 50_000, "c": 50_000, "d": 120_000, "e": 0}
+    entries = []
+    for name, size in sizes.items():
+        h = tmp_path / f"{name}.csv"
+        if name != "e":                                      # e: no history file (counts as empty)
+            h.write_bytes(b"x" * size)
+        entries.append(PlantEntry(name=name, plant=str(tmp_path / "plant.yaml"), history=str(h)))
+    assert submission_order(entries) == [3, 1, 2, 0, 4]      # d, then b and c (equal) in PLANTS.yaml's order
+
+    class Recording:
+        """An executor that records what it is handed and fails every task at once."""
+        def __init__(self):
+            self.names = []
+
+        def submit(self, fn, entry):
+            self.names.append(entry.name)
+            f = Future()
+            f.set_exception(RuntimeError("not run"))
+            return f
+    ex = Recording()
+    table = run_fleet(entries, tmp_path / "out", executor=ex)
+    assert ex.names == ["d", "b", "c", "a", "e"]
+    assert list(table["name"]) == ["a", "b", "c", "d", "e"]
+    assert list(table["reason"]) == ["task failed: RuntimeError: not run"] * 5

@@ -268,3 +268,62 @@ def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_
     assert ex.names == ["d", "b", "c", "a", "e"]
     assert list(table["name"]) == ["a", "b", "c", "d", "e"]
     assert list(table["reason"]) == ["task failed: RuntimeError: not run"] * 5
+
+
+# ---- (g) a worker started with Dask's trim threshold ----------------------------------------------------
+def test_replay_memory_keeps_freed_arrays_in_a_process_started_with_a_small_trim_threshold():
+    """In a process started with MALLOC_TRIM_THRESHOLD_=65536 (a Dask worker's default), arrays of
+    2.4 MB freed and allocated again cost fresh pages every time (each is mmapped); inside
+    ``replay_memory`` they are reused, and afterwards the process's own setting holds again."""
+    code = ("import resource, numpy as np, edge.fleet as F\n"
+            "def faults():\n"
+            "    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+            "    for _ in range(100):\n"
+            "        a = np.ones(300_000); del a\n"
+            "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
+            "before = faults()\n"
+            "with F.replay_memory():\n"
+            "    faults(); inside = faults()\n"
+            "after = faults()\n"
+            "print(before, inside, after)\n")
+    env = _env()
+    env["MALLOC_TRIM_THRESHOLD_"] = "65536"
+    env.pop("MALLOC_MMAP_THRESHOLD_", None)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                          env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    before, inside, after = map(int, proc.stdout.split())
+    pages = 100 * 300_000 * 8 // 4096                     # every array on fresh pages: ~58,600 faults
+    assert before > 0.9 * pages and after > 0.9 * pages, (before, after)
+    assert inside < 0.05 * pages, inside
+
+
+def test_replay_memory_leaves_other_processes_alone(monkeypatch):
+    import edge.fleet as F
+    calls = []
+
+    class Libc:
+        def mallopt(self, *a):
+            calls.append(("mallopt",) + a)
+
+        def malloc_trim(self, *a):
+            calls.append(("malloc_trim",) + a)
+    monkeypatch.setattr(F, "_glibc", lambda: Libc())
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    with F.replay_memory():
+        pass
+    assert calls == []                                    # no trim setting: glibc's own behaviour
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", str(F.TASK_TRIM_THRESHOLD))
+    with F.replay_memory():
+        pass
+    assert calls == []                                    # a threshold as large as the task's: left as is
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    with pytest.raises(RuntimeError):
+        with F.replay_memory():
+            raise RuntimeError("the task failed")
+    assert calls == [("mallopt", F.M_MMAP_THRESHOLD, F.TASK_MMAP_THRESHOLD),
+                     ("mallopt", F.M_TRIM_THRESHOLD, F.TASK_TRIM_THRESHOLD),
+                     ("mallopt", F.M_TRIM_THRESHOLD, 65536),
+                     ("mallopt", F.M_MMAP_THRESHOLD, F.DEFAULT_MMAP_THRESHOLD),
+                     ("malloc_trim", 0)]                  # set back even when the task raised

@@ -28,7 +28,6 @@ imported only by ``cluster()``, i.e. only by ``hp-edge fleet``.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import re
 import time
@@ -145,61 +144,14 @@ def load_plants(path: str | Path) -> list[PlantEntry]:
 def replay_plant(entry: PlantEntry) -> PlantOutcome:
     """Read one plant's plant.yaml and history, replay it (sequentially, in this worker) and return
     the result, or the reason it failed. Never raises: one plant cannot stop the fleet."""
+    from model.analysis.replay import replay_memory
     t0 = time.perf_counter()
     try:
-        with replay_memory():
+        with replay_memory():             # reading the history too, not only the replay
             return _replay_plant(entry, t0)
     except Exception as exc:       # noqa: BLE001 - the fleet's boundary: report it, go on
         return PlantOutcome(entry.name, False, f"{type(exc).__name__}: {exc}",
                             seconds=time.perf_counter() - t0)
-
-
-# glibc's mallopt parameters (malloc.h) and the values a replay task runs with in a worker that was
-# started with a small MALLOC_TRIM_THRESHOLD_ (Dask's nanny: 65536; see LOCAL_WORKER_CONFIG)
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-TASK_MMAP_THRESHOLD = 32 * 1024 * 1024      # glibc's own ceiling for its dynamic threshold
-TASK_TRIM_THRESHOLD = 2 * TASK_MMAP_THRESHOLD
-DEFAULT_MMAP_THRESHOLD = 128 * 1024
-
-
-def _glibc():
-    """glibc's C library (ctypes), or None (another C library, or none to be found)."""
-    import ctypes
-    try:
-        libc = ctypes.CDLL(None)
-        libc.gnu_get_libc_version          # glibc only
-        return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
-    except (OSError, AttributeError):
-        return None
-
-
-@contextlib.contextmanager
-def replay_memory():
-    """A replay's memory settings for the duration, in a process started with glibc's trim
-    threshold below TASK_TRIM_THRESHOLD (a Dask worker you started for a ``tcp://`` scheduler has
-    65536 from its nanny): freed memory up to TASK_TRIM_THRESHOLD stays with the process and arrays up
-    to TASK_MMAP_THRESHOLD come from its heap, as in a process without the setting; afterwards the
-    process's own thresholds are set again and what it holds is given back (``malloc_trim``). Does
-    nothing elsewhere (no such setting, another C library): the replay's numbers cannot change."""
-    import os
-    trim = os.environ.get("MALLOC_TRIM_THRESHOLD_")
-    libc = _glibc() if trim is not None else None
-    try:
-        trim_v = int(trim) if libc is not None else None
-        mmap_v = int(os.environ.get("MALLOC_MMAP_THRESHOLD_") or DEFAULT_MMAP_THRESHOLD)
-    except ValueError:
-        trim_v = None
-    if trim_v is None or trim_v >= TASK_TRIM_THRESHOLD:
-        yield
-        return
-    libc.mallopt(M_MMAP_THRESHOLD, max(mmap_v, TASK_MMAP_THRESHOLD))
-    libc.mallopt(M_TRIM_THRESHOLD, TASK_TRIM_THRESHOLD)
-    try:
-        yield
-    finally:
-        libc.mallopt(M_TRIM_THRESHOLD, trim_v)
-        libc.mallopt(M_MMAP_THRESHOLD, mmap_v)
-        libc.malloc_trim(0)
 
 
 def _replay_plant(entry: PlantEntry, t0: float) -> PlantOutcome:

@@ -273,13 +273,14 @@ def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_
 # ---- (g) a worker started with Dask's trim threshold ----------------------------------------------------
 def test_replay_memory_keeps_freed_arrays_in_a_process_started_with_a_small_trim_threshold():
     """In a process started with MALLOC_TRIM_THRESHOLD_=65536 (a Dask worker's default), arrays of
-    2.4 MB freed and allocated again cost fresh pages every time (each is mmapped); inside
-    ``replay_memory`` they are reused, and afterwards the process's own setting holds again."""
-    code = ("import resource, numpy as np, edge.fleet as F\n"
+    24 MB freed and allocated again cost fresh pages every time (each is mmapped; 24 MB: more than
+    a free block the imports may have left in the heap, which would serve it without a fault);
+    inside ``replay_memory`` they are reused, and afterwards the process's own setting holds again."""
+    code = ("import resource, numpy as np, model.analysis.replay as F\n"
             "def faults():\n"
             "    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
-            "    for _ in range(100):\n"
-            "        a = np.ones(300_000); del a\n"
+            "    for _ in range(20):\n"
+            "        a = np.ones(3_000_000); del a\n"
             "    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
             "before = faults()\n"
             "with F.replay_memory():\n"
@@ -293,13 +294,14 @@ def test_replay_memory_keeps_freed_arrays_in_a_process_started_with_a_small_trim
                           env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     before, inside, after = map(int, proc.stdout.split())
-    pages = 100 * 300_000 * 8 // 4096                     # every array on fresh pages: ~58,600 faults
-    assert before > 0.9 * pages and after > 0.9 * pages, (before, after)
-    assert inside < 0.05 * pages, inside
+    # fresh pages for every array: 5,860 faults each with 4-kB pages, 12 where the kernel backs it
+    # with 2-MB pages (transparent huge pages); at least 10 an array either way
+    assert before >= 20 * 10 and after >= before / 2, (before, after)
+    assert inside <= before / 20, (before, inside)
 
 
 def test_replay_memory_leaves_other_processes_alone(monkeypatch):
-    import edge.fleet as F
+    import model.analysis.replay as F
     calls = []
 
     class Libc:
@@ -327,3 +329,9 @@ def test_replay_memory_leaves_other_processes_alone(monkeypatch):
                      ("mallopt", F.M_TRIM_THRESHOLD, 65536),
                      ("mallopt", F.M_MMAP_THRESHOLD, F.DEFAULT_MMAP_THRESHOLD),
                      ("malloc_trim", 0)]                  # set back even when the task raised
+    calls.clear()
+    with F.replay_memory():
+        with F.replay_memory():                           # nested (replay_plant -> replay): the outer one
+            pass
+        assert len(calls) == 2
+    assert len(calls) == 5

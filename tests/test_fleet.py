@@ -320,6 +320,11 @@ def test_replay_memory_leaves_other_processes_alone(monkeypatch):
     with F.replay_memory():
         pass
     assert calls == []                                    # a threshold as large as the task's: left as is
+    for bad in ("-1", "64k", ""):
+        monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", bad)
+        with F.replay_memory():
+            pass
+    assert calls == []                                    # not a size: left as is
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
     with pytest.raises(RuntimeError):
         with F.replay_memory():

@@ -318,8 +318,9 @@ def replay_memory():
     setting (with it glibc gives every freed array back to the OS and takes fresh pages again: 4.6x
     the page faults of a 10-day replay, system time 0.3 -> 0.8 s); afterwards the process's own
     thresholds are set again and what it holds is given back (``malloc_trim``). Nested: the
-    outermost applies. Does nothing elsewhere (no such setting, another C library): the replay's
-    numbers cannot change."""
+    outermost applies (the settings are the process's: replays in several threads of one process
+    have them for the first one's span). Does nothing elsewhere (no such setting or one that is not
+    a size, another C library): the replay's numbers cannot change."""
     global _memory_depth
     if _memory_depth:
         yield
@@ -332,7 +333,7 @@ def replay_memory():
         mmap_v = int(os.environ.get("MALLOC_MMAP_THRESHOLD_") or DEFAULT_MMAP_THRESHOLD)
     except ValueError:
         trim_v = None
-    if trim_v is None or trim_v >= TASK_TRIM_THRESHOLD:
+    if trim_v is None or not 0 <= trim_v < TASK_TRIM_THRESHOLD or mmap_v < 0:
         yield
         return
     libc.mallopt(M_MMAP_THRESHOLD, max(mmap_v, TASK_MMAP_THRESHOLD))

@@ -191,3 +191,50 @@ def test_a_replay_holds_blas_to_one_thread_and_gives_it_back(monkeypatch):
     with one_blas_thread():
         assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] \
             == before
+
+
+def test_the_measured_side_of_a_block_of_windows_is_each_windows_own(learned, plant, monkeypatch):
+    """A replay's pass 1 computes the measured side (derived, with the stage states the compressor
+    observations ask for again) of 32 windows in one call and hands each window its rows: the same
+    frames to the bit as the window's own call, and no stage state computed twice."""
+    import model.analysis.compressors as C
+    from model.measured import derived
+    data, *_ = learned
+    data = data.assign(timestamp=pd.to_datetime(data["timestamp"], utc=True))
+    cuts = [(0, 100), (100, 220), (220, 260)]
+    block = data.iloc[: cuts[-1][1]]
+    with C.recorded_stages() as records:
+        der_all = derived(block, plant)
+    assert len(records) == 2                      # the LS and the HS stage
+    real = C._stage_arrays
+    calls = []
+    monkeypatch.setattr(C, "_stage_arrays", lambda *a: calls.append(1) or real(*a))
+    for a, b in cuts:
+        win = data.iloc[a:b].reset_index(drop=True)
+        with C.shared_stages():
+            der_own = derived(win, plant)
+            obs_own = observe(win, plant)
+        n_own = len(calls)
+        with C.shared_stages():
+            C.preset_stages(records, slice(a, b))
+            obs_pre = observe(win, plant)
+        assert len(calls) == n_own                # answered from the block's states
+        pd.testing.assert_frame_equal(der_all.iloc[a:b].reset_index(drop=True), der_own, check_exact=True)
+        pd.testing.assert_frame_equal(obs_pre, obs_own, check_exact=True)
+    # outside recorded_stages nothing is kept; preset only fills this context's memo
+    with C.shared_stages():
+        derived(block.iloc[:10], plant)
+        assert getattr(C._shared, "record", None) is None
+
+
+def test_plant_params_replace_is_dataclasses_replace(plant):
+    import dataclasses
+    q = plant.replace(R_th_f=1.5e-4, CF_DSH=1.1, comp_LS=plant.comp_LS.replace(N_max=3100.0))
+    r = dataclasses.replace(plant, R_th_f=1.5e-4, CF_DSH=1.1, comp_LS=plant.comp_LS.replace(N_max=3100.0))
+    assert q == r and q.__dict__ == r.__dict__ and hash(q) == hash(r) and type(q) is type(r)
+    assert plant.R_th_f != 1.5e-4                 # the original untouched
+    assert pickle.loads(pickle.dumps(q)) == q
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        q.R_th_f = 0.0
+    with pytest.raises(TypeError, match=r"^PlantParams.replace: unknown field\(s\) 'R_thf', 'x'$"):
+        plant.replace(R_thf=1.0, x=2)

@@ -39,7 +39,7 @@ from ..units import BAR, M3H
 from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, settle_advice
 from .cip import CipSettings, ForecastState, cost_levels_for, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
-from .compressors import STAGES, CompressorLearner, LearningSettings, observe, shared_stages
+from .compressors import STAGES, CompressorLearner, LearningSettings, observe, preset_stages, shared_stages
 from .surrogate_tracker import SurrogateTracker, TrackerSettings, optimum_row
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
@@ -424,12 +424,18 @@ class AnalysisChain:
         The three passes in one: ``finish(analyse(prepare(data, state)), state)``."""
         return self.finish(self.analyse(self.prepare(data, state)), state)
 
-    def prepare(self, data: pd.DataFrame, state: ChainState, samples: bool = False) -> WindowTask:
+    def prepare(self, data: pd.DataFrame, state: ChainState, samples: bool = False,
+                pre: tuple | None = None) -> WindowTask:
         """Pass 1 (cheap, in window order): the measured side, the compressor observations and the
         learner's update, the heat-balance check, the LS controller's set point and, with a change
         penalty, the fouling calibration. Returns the window's task: plain data that ``analyse``
         turns into the window's results without ``state`` (so tasks can run in any process).
-        ``samples``: the task also returns the per-sample model series (replay's samples.csv)."""
+        ``samples``: the task also returns the per-sample model series (replay's samples.csv).
+        ``pre``: (der, records, rows) the measured side of ``data`` computed with other windows'
+        samples (a replay's block of windows: ``model.measured.derived`` with ``state.fixed`` on
+        all their rows, the stage states recorded then, ``compressors.recorded_stages``): ``der``
+        this window's rows of it (index 0..n-1), ``rows`` where they are in the records (a
+        slice). The same numbers as computed here (every column is row by row)."""
         ts = _times(data)
         data = data.reset_index(drop=True)
         n = len(data)
@@ -446,11 +452,13 @@ class AnalysisChain:
             return task
         fixed = state.fixed
         with shared_stages():       # derived and observe ask for the same compressor states
-            return self._prepare(data, task, res, state, fixed)
+            if pre is not None:
+                preset_stages(pre[1], pre[2])
+            return self._prepare(data, task, res, state, fixed, None if pre is None else pre[0])
 
-    def _prepare(self, data, task, res, state, fixed) -> WindowTask:
-        """``prepare`` past its first checks."""
-        der = derived(data, fixed)
+    def _prepare(self, data, task, res, state, fixed, der=None) -> WindowTask:
+        """``prepare`` past its first checks (``der``: the measured side computed already)."""
+        der = derived(data, fixed) if der is None else der
         for c in INPUT_COLUMNS:
             der[c] = pd.to_numeric(data[c], errors="coerce").to_numpy(dtype=float)
         task.der = der

@@ -176,10 +176,40 @@ def stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) -> dict:
     memo = getattr(_shared, "memo", None)
     if memo is None:
         return _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis)
-    key = (id(tab),) + tuple(np.asarray(a, dtype=float).tobytes() for a in (p_suc, T_suc, p_dis, T_dis))
+    ins = tuple(np.asarray(a, dtype=float) for a in (p_suc, T_suc, p_dis, T_dis))
+    key = (id(tab),) + tuple(a.tobytes() for a in ins)
     if key not in memo:
         memo[key] = (tab, _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis))   # tab kept: its id stays its own
+        rec = getattr(_shared, "record", None)
+        if rec is not None:         # copies: the caller's arrays are its own
+            rec.append((tab, tuple(a.copy() for a in ins), memo[key][1]))
     return memo[key][1]
+
+
+@contextmanager
+def recorded_stages():
+    """``shared_stages`` that also yields a list of every call's (tab, inputs, arrays): the stage
+    states of many windows' rows computed at once, handed to each window by ``preset_stages``."""
+    prev = getattr(_shared, "record", None)
+    with shared_stages():
+        _shared.record = rec = []
+        try:
+            yield rec
+        finally:
+            _shared.record = prev
+
+
+def preset_stages(records: list, rows) -> None:
+    """Within ``shared_stages``: a later ``stage_arrays`` call whose inputs are the rows ``rows`` (an
+    index or slice) of a recorded call (``recorded_stages``) is answered with those rows of its
+    arrays. Every array of ``_stage_arrays`` is row by row (property tables, no reduction over
+    rows), so the answer is the one the call would compute."""
+    memo = _shared.memo
+    for tab, ins, arrays in records:
+        part = tuple(a[rows] for a in ins)
+        key = (id(tab),) + tuple(a.tobytes() for a in part)
+        if key not in memo:
+            memo[key] = (tab, {k: v[rows] for k, v in arrays.items()})
 
 
 def _stage_arrays(tab, p_suc, T_suc, p_dis, T_dis) -> dict:

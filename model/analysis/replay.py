@@ -35,11 +35,11 @@ import pandas as pd
 
 from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_from_config
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
-from ..measured import process, usable_counts
+from ..measured import derived, process, usable_counts
 from .. import lockstep
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
-from .compressors import STAGES, CompressorLearner, observe
+from .compressors import STAGES, CompressorLearner, observe, recorded_stages
 from . import speedkernel
 
 WINDOW_COLUMNS = ROW_COLUMNS
@@ -475,11 +475,22 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         progress(0, len(plan))
 
     def tasks():
-        """Pass 1, in window order: each window's task (the learner updated, and so on)."""
-        for pos, new_seg in plan:
-            if new_seg:
-                chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
-            yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True)
+        """Pass 1, in window order: each window's task (the learner updated, and so on). The
+        measured side (``model.measured.derived``, with the stage states the compressor
+        observations ask for again) of PASS1_BLOCK windows at a time, in one call: per window it
+        cost ~3 ms of numpy calls on 120 rows (a tenth of a 30-day replay's pass 1 and 2)."""
+        for b0 in range(0, len(plan), PASS1_BLOCK):
+            block = plan[b0:b0 + PASS1_BLOCK]
+            with recorded_stages() as records:
+                der = derived(history.iloc[np.concatenate([pos for pos, _ in block])], state.fixed)
+            end = 0
+            for pos, new_seg in block:
+                rows = slice(end, end + len(pos))
+                end = rows.stop
+                if new_seg:
+                    chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
+                yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True,
+                                    pre=(der.iloc[rows].reset_index(drop=True), records, rows))
 
     for n_done, partial in enumerate(run_windows(chain, tasks(), executor,
                                                  lockstep_windows=s.lockstep_windows), start=1):
@@ -655,6 +666,7 @@ def _analyse_chunk_pickled(chain_blob: bytes, task_blobs: list) -> list:
         return _analyse_chunk(pickle.loads(chain_blob), task_blobs)
 
 
+PASS1_BLOCK = 32          # windows whose measured side pass 1 computes in one call
 MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
 LOCKSTEP_WINDOWS = ReplaySettings.lockstep_windows   # run_windows' default chunk
 

@@ -214,7 +214,17 @@ class PlantParams:
     extra: dict = field(default_factory=dict, compare=False, hash=False)  # calibration settings etc.
 
     def replace(self, **kw) -> "PlantParams":
-        return dataclasses.replace(self, **kw)
+        """``dataclasses.replace(self, **kw)`` without the generated ``__init__`` (the solver asks for
+        ~60 a window: per-row parameters, calibration trials): the same fields, no
+        ``__post_init__`` to run, values taken as given as ``replace`` does."""
+        bad = [k for k in kw if k not in _PLANT_FIELDS]
+        if bad:
+            raise TypeError(f"PlantParams.replace: unknown field(s) {', '.join(map(repr, bad))}")
+        new = object.__new__(PlantParams)
+        d = new.__dict__
+        d.update(self.__dict__)
+        d.update(kw)
+        return new
 
     # derived conductances [W/K]
     @property
@@ -339,6 +349,9 @@ class PlantParams:
         if errors:
             raise ParamError("\n".join(errors))
         return cls(**kwargs)
+
+
+_PLANT_FIELDS = frozenset(f.name for f in dataclasses.fields(PlantParams))
 
 
 @dataclass(frozen=True)

@@ -349,3 +349,61 @@ def test_input_matrix_is_the_sub_frames_array_in_its_memory_order():
     for choices in (("ok",), ("ok", "negative_pinch"), ("ls_speed_high", "ls_speed_low", "negative_pinch")):
         assert np.array_equal(among(status, choices), np.isin(status, choices))
     assert among(np.array([], dtype=object), ("ok",)).tolist() == []
+
+
+SEPARABLE_PARAM_TOL = 1e-5    # share of the bound range: the IRLS/TRF path's own tolerance (spec.tolerance)
+
+
+def test_separable_fouling_calibration_is_the_irls_optimum(initial, synth, monkeypatch):
+    """The fouling spec separates (R_th,f moves p_e alone, CF_dp,f the pressure drop alone): each
+    parameter on its own target gives the optimum of sum_k w_k NRMSE_k that the IRLS rounds of
+    TRF reach, to their tolerance, and never a worse objective; the same standard errors."""
+    import model.calibration as C
+    _, _, fixed, _ = initial
+    sh, processed = synth
+    spec = DEFAULT_SPECS["fouling"]
+    assert C._separable(spec, None) == [(0, "p_e", False), (1, "dp_source", True)]
+    n = 0
+    for m in _windows(processed):
+        data = calibration_frame(sh.history, processed, m)
+        sep = calibrate(data, fixed, spec)
+        monkeypatch.setattr(C, "SEPARABLE", False)
+        irls = calibrate(data, fixed, spec)
+        monkeypatch.setattr(C, "SEPARABLE", True)
+        assert sep.rounds == 1 and irls.rounds >= 1 and sep.success and sep.message == "converged"
+        assert sep.model_evaluations < irls.model_evaluations
+        for p in spec.parameters:
+            span = p.upper - p.lower
+            assert abs(sep.params[p.name] - irls.params[p.name]) <= SEPARABLE_PARAM_TOL * span, p.name
+            assert sep.std_errors[p.name] == pytest.approx(irls.std_errors[p.name], rel=1e-3)
+        assert sep.objective <= irls.objective * (1 + 1e-12)
+        assert sep.identifiable == irls.identifiable
+        n += 1
+    assert n >= 5
+
+
+def test_separable_path_only_where_the_problem_separates():
+    import model.calibration as C
+    f = DEFAULT_SPECS["fouling"]
+    assert C._separable(f, np.array([0.1, 0.2])) is None           # a change penalty couples to the previous window
+    both = CalibrationSpec(kind="x", goals=(Goal("p_e", 1.0),), parameters=(
+        BoundedParam("CF_eva", 1.0, 0.5, 2.0), BoundedParam("R_th_f_K_per_kW", 0.0, 0.0, 8e-3)))
+    assert C._separable(both, None) is None                        # two parameters on one target
+    unscored = CalibrationSpec(kind="x", goals=(Goal("p_e", 1.0), Goal("dp_source", 0.0)),
+                               parameters=f.parameters)
+    assert C._separable(unscored, None) is None                    # CF_dp,f would be undetermined
+    assert C._separable(DEFAULT_SPECS["initial"], None) is None    # the full cycle model
+    one = CalibrationSpec(kind="x", goals=(Goal("p_e", 0.7), Goal("dp_source", 0.3)),
+                          parameters=(BoundedParam("R_th_f_K_per_kW", 0.0, 0.0, 8e-3),))
+    assert C._separable(one, None) == [(0, "p_e", False)]
+
+
+def test_separable_linear_parameter_stops_at_its_bound(initial, synth):
+    """A pressure drop below the clean fit's (CF_dp,f < 1 would fit) gives CF_dp,f at its lower
+    bound exactly, and says so."""
+    _, _, fixed, _ = initial
+    sh, processed = synth
+    data = calibration_frame(sh.history, processed, next(iter(_windows(processed)))).copy()
+    data["dp_source_bar"] = 0.8 * fixed.dp_clean(data["V_source"].to_numpy() / 3600.0) / 1e5
+    res = calibrate(data, fixed, DEFAULT_SPECS["fouling"])
+    assert res.params["CF_dp_f"] == 1.0 and "CF_dp_f" in res.at_bound

@@ -327,3 +327,31 @@ def test_steady_start_is_the_fixed_point_of_cleaning_and_growth(R_start, dR, tau
     tc = comp.crossing_times(np.array([T]), np.array([y_post + 0.5 * (fit.y_inf - y_post)]))[0, 0]
     if tc < T:                                    # the path reaches the midway level at tc
         assert float(fit.growth(y_post, tc)) == pytest.approx(y_post + 0.5 * (fit.y_inf - y_post), rel=1e-9)
+
+
+@pytest.mark.parametrize("law_, restart, cov", [
+    ("kern_seaton", "auto", np.diag([1e-4, 2e-5, 0.02]) ** 2),
+    ("kern_seaton", "current", np.diag([1e-4, 2e-5, 0.02]) ** 2),
+    ("linear", "auto", np.diag([1e-4, 3e-4]) ** 2),          # r0's lower sigma point clipped to 0
+    ("linear", "current", np.diag([1e-4, 2e-5]) ** 2),
+])
+def test_sigma_points_in_one_array_give_each_points_own_cycle_cost(law_, restart, cov, monkeypatch):
+    """A component's sigma points are integrated in one set of array operations (stop 30): the
+    same numbers to the bit as one point after the other, for both laws and restarts, beside a
+    component of its own (the pump's)."""
+    import dataclasses
+    import model.analysis.cost as C
+    fit = dataclasses.replace(law(law_, 3e-3, 0.2e-3, 15.0), cov=cov)
+    R = FoulingComponent(fit, 0.3, CostCurve([0.0, 1e-3, 4e-3], [0.0, 40.0, 190.0]), restart=restart,
+                         uncertain=True)
+    CF = FoulingComponent(law("kern_seaton", 1.1, 0.02, 20.0, floor=1.0), 0.3, CostCurve([1.0, 2.0], [0.0, 9.0]))
+    expanded = C._expand([R, CF])
+    runs = C._runs(expanded)
+    assert [len(m) for _, m in runs] == [len(R.variants()), 1] and runs[0][0]
+    if law_ == "linear" and restart == "auto":
+        assert min(c.fit.r0 for _, c in R.variants()) == 0.0
+    T = np.geomspace(0.25, 365.0, 100)
+    stacked = C._cycle_cost(expanded, T)
+    monkeypatch.setattr(C, "_runs", lambda ex: [(False, [v]) for v in ex])
+    one_by_one = C._cycle_cost(expanded, T)
+    assert np.array_equal(stacked, one_by_one)

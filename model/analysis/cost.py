@@ -494,12 +494,85 @@ _GL16_X, _GL16_W = np.polynomial.legendre.leggauss(16)
 _GL16_X, _GL16_W = 0.5 * (_GL16_X + 1.0), 0.5 * _GL16_W
 
 
+def _runs(expanded) -> list:
+    """``expanded`` as runs of consecutive variants that ``_stacked_cost`` takes in one set of array
+    operations (one component's sigma points: the same CostCurve, law, mode, removal share and
+    floor); every other variant a run of its own. [(stackable, [(w, component), ...])]."""
+    runs: list = []
+    last = None
+    for wv, c in expanded:
+        f = c.cost_eur_per_day
+        key = None
+        if isinstance(f, CostCurve) and not (c.mode == "steady" and c.fit.law != "kern_seaton"
+                                             and c.removal_share <= 0):
+            key = (id(f), c.fit.law, c.mode, c.removal_share, c.fit.floor)
+        if key is not None and key == last:
+            runs[-1][1].append((wv, c))
+        else:
+            runs.append((key is not None, [(wv, c)]))
+        last = key
+    return runs
+
+
+def _stacked_cost(members, T) -> np.ndarray:
+    """Each member's integral_0^T f(level) dt (before its weight), shape (V, len(T)), for a run of
+    ``_runs``: the operations of ``FoulingComponent.start_level``, ``crossing_times`` and ``levels``
+    and of ``_cycle_cost``'s CostCurve branch, element by element in the same order, with the
+    members' parameters along a leading axis (so the same numbers as one member at a time)."""
+    comps = [c for _, c in members]
+    c0 = comps[0]
+    f, s, mode, law, floor = c0.cost_eur_per_day, c0.removal_share, c0.mode, c0.fit.law, c0.fit.floor
+    col = lambda vals: np.array(vals, dtype=float)[:, None]     # noqa: E731 -- (V, 1)
+    k, r0 = col([c.fit.k for c in comps]), col([c.fit.r0 for c in comps])
+    y0, y_inf = col([c.fit.y0 for c in comps]), col([c.fit.y_inf for c in comps])
+    V, m = len(comps), len(T)
+    Tm = T[None, :]
+    if mode == "current":
+        y_post = np.broadcast_to(y0, (V, m))
+    elif law == "kern_seaton":
+        E = np.exp(-k * Tm)
+        U = y_inf - floor
+        y_post = floor + (1 - s) * U * (1 - E) / (1 - (1 - s) * E)
+    else:
+        y_post = floor + (1 - s) * r0 * Tm / s
+    # crossing_times(T, f.levels): (V, m, b)
+    yp = y_post[:, :, None]
+    x = np.asarray(f.levels, dtype=float)[None, None, :]
+    k3, r03, yi3 = k[:, :, None], r0[:, :, None], y_inf[:, :, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if law == "kern_seaton":
+            tau = np.log((yi3 - yp) / (yi3 - x)) / k3
+            tau = np.where(x >= yi3, np.inf, tau)
+        else:
+            tau = np.where(r03 > 0, (x - yp) / r03, np.inf)
+    tau = np.where((x <= yp) | np.isnan(tau), 0.0, tau)
+    T3 = T[None, :, None]
+    ct = np.minimum(np.maximum(tau, 0.0), T3)
+    edges = np.concatenate([np.zeros((V, m, 1)), ct, np.broadcast_to(T3, (V, m, 1))], axis=2)
+    a, h = edges[:, :, :-1, None], np.diff(edges, axis=2)[:, :, :, None]
+    tau = (a + h * _GL16_X[None, None, None, :]).reshape(V, m, -1)
+    wts = (h * _GL16_W[None, None, None, :]).reshape(V, m, -1)
+    # levels(T, tau): growth from y_post
+    if law == "kern_seaton":
+        lv = yi3 - (yi3 - yp) * np.exp(-k3 * tau)
+    else:
+        lv = yp + r03 * tau
+    return (np.asarray(f(lv)) * wts).sum(axis=2)
+
+
 def _cycle_cost(expanded, T) -> np.ndarray:
     """Sum of w * integral_0^T f(level) dt. A CostCurve is piecewise linear: the integral is split
     where the path crosses its breakpoints, and each smooth piece gets 16 Gauss–Legendre nodes
-    (exact to rounding for these laws); any other cost callable gets 48 nodes over [0, T]."""
+    (exact to rounding for these laws); any other cost callable gets 48 nodes over [0, T]. A
+    component's sigma points in one set of array operations (``_stacked_cost``), added in order."""
     total = np.zeros(T.shape)
-    for wv, c in expanded:
+    for stackable, members in _runs(expanded):
+        if stackable and len(members) > 1:
+            S = _stacked_cost(members, T)
+            for j, (wv, _) in enumerate(members):
+                total += wv * S[j]
+            continue
+        wv, c = members[0]
         f = c.cost_eur_per_day
         if isinstance(f, CostCurve):
             edges = np.concatenate([np.zeros((len(T), 1)), c.crossing_times(T, f.levels), T[:, None]], axis=1)

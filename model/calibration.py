@@ -25,10 +25,11 @@ needs no cycle solve: it is vectorised over the window.
 Separable path (``_separable``): when, moreover, every parameter is the only one that moves its
 target (the fouling calibration: R_th,f moves p_e, CF_dp,f the pressure drop) and there is no change
 penalty, F is least where each parameter minimises its own target's sum of squares: CF_dp,f in
-closed form (the pressure drop is proportional to it), R_th,f by bounded Brent to 1e-9 of its range
-(scaled). The same optimum as the IRLS rounds, which stop at ``tolerance`` (the fouling windows'
-R_th,f within 1e-5 of the range of theirs, the objective never higher), in a quarter of the time:
-scipy's least-squares machinery around ~50 cheap residuals was most of a fouling calibration.
+closed form (the pressure drop is proportional to it), R_th,f by scipy's bounded Brent (xatol 1e-9
+of the scaled range; the method adds 1.5e-8 of the value). The same optimum as the IRLS rounds,
+which stop at ``tolerance`` (the fouling windows' R_th,f within 1e-5 of the range of theirs, the
+objective never higher), in a quarter of the time: scipy's least-squares machinery around ~50
+cheap residuals was most of a fouling calibration.
 
 Parameter values are in configuration units (R_th_f in K/kW); the model uses SI (K/W).
 """
@@ -73,7 +74,7 @@ FAST_PARAMETERS = ("CF_eva", "R_th_f_K_per_kW", "CF_dp_f")
 # source pressure drop through CF_dp_f, in proportion) and whether the target is linear in it
 FAST_MOVES = {"CF_eva": ("p_e", False), "R_th_f_K_per_kW": ("p_e", False), "CF_dp_f": ("dp_source", True)}
 SEPARABLE = True                  # the separable path (``_separable``); False: IRLS + TRF always
-SEPARABLE_XATOL = 1e-9            # scaled-parameter tolerance of its bounded scalar searches
+SEPARABLE_XATOL = 1e-9            # scaled-parameter xatol of its bounded Brent (which adds sqrt(eps)*|x|)
 STATISTICS = ("nrmse", "rmse")
 
 DEFAULT_TOLERANCE = 1e-5          # SPEC §5
@@ -621,7 +622,7 @@ def _separable(spec: CalibrationSpec, prev) -> list[tuple[int, str, bool]] | Non
 def _solve_separable(prob: _Problem, x: np.ndarray, pairs) -> tuple[np.ndarray, int, bool, str]:
     """Each parameter of a separable problem (``_separable``) on its own target's sum of squared
     errors over its bound range (scaled 0..1): a target linear in it in closed form (two
-    evaluations), else bounded Brent to SEPARABLE_XATOL. Returns (x, iterations, success, message)."""
+    evaluations), else bounded Brent (xatol SEPARABLE_XATOL). Returns (x, iterations, success, message)."""
     x = x.copy()
     iterations, success, messages = 0, True, []
 

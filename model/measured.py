@@ -117,27 +117,14 @@ def _derived(df: pd.DataFrame, params: PlantParams):
     # invert the evaporator on the measured evaporating temperature (model.components)
     UA = evaporator_UA(C_to_K(num["T_source_in"]), C_to_K(num["T_source_out"]), T_e_sat, C_src)
     out["UA_eva_kW_K"] = UA / 1e3
-    out["R_th_f_K_per_kW"] = R_th_f_point(UA, params)
-    return out, {"num": num, "W": W, "T_e_sat": T_e_sat, "prop_fail": prop_fail, "UA": UA,
-                 "columns": list(out.columns)}
-
-
-def R_th_f_point(UA, params: PlantParams):
-    """``derived``'s R_th_f_K_per_kW from the evaporator conductance UA [W/K] of the samples."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        return (1.0 / UA - 1.0 / params.UA_eva_clean) * 1e3
+        out["R_th_f_K_per_kW"] = (1.0 / UA - 1.0 / params.UA_eva_clean) * 1e3
+    return out, {"num": num, "W": W, "T_e_sat": T_e_sat, "prop_fail": prop_fail}
 
 
 def process(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None) -> pd.DataFrame:
     """Derived quantities of SPEC §4 for each one-minute sample (``derived``) plus ``usable``
     [bool] and ``reason`` [str]."""
-    return process_aux(df, params, ranges)[0]
-
-
-def process_aux(df: pd.DataFrame, params: PlantParams, ranges: dict | None = None):
-    """``process`` and what ``derived`` computed on the way: {"UA": the evaporator conductance
-    [W/K] per sample, "columns": ``derived``'s columns, ...} (a replay's pass 1 takes its windows'
-    measured side from these instead of computing it again)."""
     ranges = {**DEFAULT_RANGES, **(ranges or {})}
     n = len(df)
     out, aux = _derived(df, params)
@@ -177,7 +164,7 @@ def process_aux(df: pd.DataFrame, params: PlantParams, ranges: dict | None = Non
         final = np.where((final == "") & (q != ""), q, final)
     out["usable"] = final == ""
     out["reason"] = final
-    return out, aux
+    return out
 
 
 def usable_counts(processed: pd.DataFrame) -> dict[str, int]:

@@ -300,23 +300,3 @@ def test_a_replay_collects_garbage_less_often_and_restores_the_threshold():
         assert gc.get_threshold() == (50_000, 10, 10)
     finally:
         gc.set_threshold(*old)
-
-
-def test_pass_one_takes_the_measured_side_from_the_history_or_computes_it_the_same(plant, history, monkeypatch):
-    """A replay's pass 1 takes each window's measured side from the history's (``process``, with
-    R_th,f against the fixed model's clean evaporator) and the stage states recorded then; given
-    ``processed`` by the caller it computes them per block of windows instead. The same windows
-    and samples to the bit, and no stage state computed twice on the first way."""
-    import model.analysis.compressors as C
-    calls = []
-    real = C._stage_arrays
-    monkeypatch.setattr(C, "_stage_arrays", lambda *a: calls.append(len(a[1])) or real(*a))
-    whole = replay(history.history, plant, ReplaySettings(optimize=False))
-    n_whole = sum(calls)
-    calls.clear()
-    block = replay(history.history, plant, ReplaySettings(optimize=False),
-                   processed=process(history.history.sort_values("timestamp"), plant))
-    pd.testing.assert_frame_equal(whole.windows, block.windows, check_exact=True)
-    pd.testing.assert_frame_equal(whole.samples, block.samples, check_exact=True)
-    # the block way computes every window's rows again (both stages); the history's way none
-    assert sum(calls) - n_whole == 2 * int(whole.windows["n_samples"].sum()) > 0

@@ -35,7 +35,7 @@ import pandas as pd
 
 from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_from_config
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
-from ..measured import R_th_f_point, derived, process_aux, usable_counts
+from ..measured import derived, process, usable_counts
 from .. import lockstep
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
@@ -396,12 +396,8 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         order = np.argsort(ts.to_numpy(), kind="stable")
         history = history.iloc[order].reset_index(drop=True)
         ts = ts[order]
-    measured: dict = {}     # the history's measured side as pass 1 takes it (see tasks())
     if processed is None:
-        with recorded_stages() as records:
-            processed, aux = process_aux(history, params)
-        measured = {"records": records, "UA": aux["UA"], "columns": aux["columns"], "params": params}
-        del records, aux
+        processed = process(history, params)
     else:
         processed = processed.reset_index(drop=True)
     usable = processed["usable"].to_numpy(dtype=bool)
@@ -479,37 +475,22 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         progress(0, len(plan))
 
     def tasks():
-        """Pass 1, in window order: each window's task (the learner updated, and so on). A
-        window's measured side (``model.measured.derived`` with the fixed model, and the stage
-        states its compressor observations ask for again) is the history's, which ``process``
-        computed with the plant's parameters: its rows, R_th,f against the fixed model's clean
-        evaporator (the only column the initial calibration changes). When the caller gave
-        ``processed`` (or the fixed model's water or ambient data differ), it is computed for
-        PASS1_BLOCK windows at a time. Per window it cost ~3 ms of numpy calls on 120 rows."""
-        fixed = state.fixed
-        whole = bool(measured) and _same_measured_side(measured["params"], fixed)
-        if whole:
-            records, UA = measured["records"], measured["UA"]
-            cols = [processed.columns.get_loc(c) for c in measured["columns"]]
+        """Pass 1, in window order: each window's task (the learner updated, and so on). The
+        measured side (``model.measured.derived``, with the stage states the compressor
+        observations ask for again) of PASS1_BLOCK windows at a time, in one call: per window it
+        cost ~3 ms of numpy calls on 120 rows (a tenth of a 30-day replay's pass 1 and 2)."""
         for b0 in range(0, len(plan), PASS1_BLOCK):
             block = plan[b0:b0 + PASS1_BLOCK]
-            if not whole:
-                with recorded_stages() as records:
-                    der = derived(history.iloc[np.concatenate([pos for pos, _ in block])], fixed)
+            with recorded_stages() as records:
+                der = derived(history.iloc[np.concatenate([pos for pos, _ in block])], state.fixed)
             end = 0
             for pos, new_seg in block:
-                if whole:
-                    d = processed.iloc[pos, cols].reset_index(drop=True)
-                    d["R_th_f_K_per_kW"] = R_th_f_point(UA[pos], fixed)
-                    pre = (d, records, pos)
-                else:
-                    rows = slice(end, end + len(pos))
-                    end = rows.stop
-                    pre = (der.iloc[rows].reset_index(drop=True), records, rows)
+                rows = slice(end, end + len(pos))
+                end = rows.stop
                 if new_seg:
                     chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
-                yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True, pre=pre)
-        measured.clear()                # the history's stage states: ~150 bytes a row
+                yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True,
+                                    pre=(der.iloc[rows].reset_index(drop=True), records, rows))
 
     for n_done, partial in enumerate(run_windows(chain, tasks(), executor,
                                                  lockstep_windows=s.lockstep_windows), start=1):
@@ -545,12 +526,6 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         samples=samples, compressors=state.learner.to_dict() if state.learner is not None else None,
         surrogate_tracker=state.tracker.to_dict() if state.tracker is not None else None, meta=meta,
         when_to_clean=when)
-
-
-def _same_measured_side(a: PlantParams, b: PlantParams) -> bool:
-    """Whether ``measured.derived`` gives the same columns with ``a`` and ``b`` but R_th,f (which
-    depends on the clean evaporator's conductance)."""
-    return all(getattr(a, f) == getattr(b, f) for f in ("fluid", "backend", "ambient_pressure", "cp_w", "rho_w"))
 
 
 def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.DataFrame,

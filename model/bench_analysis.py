@@ -80,6 +80,8 @@ def bench_analysis(params, surrogate: dict, replay_days: float = 30.0, progress=
         "dCOP_opt_pct": opt.dCOP_opt_pct,
     }
 
+    out["fouling_calibration_paths"] = calibration_paths(params)
+
     # ---- surrogate -----------------------------------------------------------------------------
     sur = Surrogate.from_dict(surrogate)
     x = tuple(0.5 * (lo + hi) for lo, hi in sur.ranges)
@@ -117,4 +119,64 @@ def bench_analysis(params, surrogate: dict, replay_days: float = 30.0, progress=
             "seconds_per_window": out[f"replay_{replay_days:g}_days_s"] / max(len(ok), 1),
         }
     out["pass"] = {k: (out[k] <= v) for k, v in TARGETS.items() if k in out}
+    return out
+
+
+PATH_FAMILIES = (("speed_peak", 3), ("low_peak", 4), ("perturbed", 5))
+PATH_R_TOL = 0.02e-3            # K/kW: issue 12's tolerance on R_th,f for a faster path
+
+
+def calibration_paths(params, days: float = 3.0, families=PATH_FAMILIES) -> dict:
+    """The fouling calibration's separable path against IRLS + TRF (``model.calibration.SEPARABLE``)
+    on simulated plants whose compressors are not plant.yaml's (``simulator.export``, one per
+    family): the commissioning's first 90 usable minutes calibrate the fixed model, then every
+    window of 120 usable samples is calibrated both ways. Per family: the largest parameter
+    differences, the objective's largest excess of the separable path over IRLS (<= 0: never
+    worse), whether both succeeded everywhere, and the median CPU time of each."""
+    from . import calibration as C
+    from .calibration import apply_state, calibrate, calibration_frame, spec_from_config
+    from .dpfit import fit_dp_clean
+    from .measured import process
+    from simulator.config import load_simulator_config      # see the NOTE above
+    from simulator.export import export_history
+
+    base = load_simulator_config()
+    spec_i, spec_f = spec_from_config(params.extra, "initial"), spec_from_config(params.extra, "fouling")
+    out: dict = {"days": days, "tolerance_R_th_f_K_per_kW": PATH_R_TOL, "separable": C._separable(spec_f, None) is not None}
+    saved = C.SEPARABLE
+    try:
+        for fam, seed in families:
+            h = export_history(days, cfg=base.with_compressor_family(fam), seed=seed).history
+            pr = process(h, params)
+            use = np.flatnonzero(pr["usable"].to_numpy())
+            mask = np.zeros(len(pr), dtype=bool)
+            mask[use[:90]] = True
+            init = calibration_frame(h, pr, mask)
+            ini = calibrate(init, params, spec_i)
+            fixed = apply_state(params, ini.to_dict(), fit_dp_clean(init["V_source"], init["dp_source_bar"]).to_dict())
+            rows = []
+            for k in range(90, len(use) - 119, 120):
+                mask = np.zeros(len(pr), dtype=bool)
+                mask[use[k:k + 120]] = True
+                win = calibration_frame(h, pr, mask)
+                got = {}
+                for sep in (True, False):
+                    C.SEPARABLE = sep
+                    t = time.process_time()
+                    got[sep] = (calibrate(win, fixed, spec_f), time.process_time() - t)
+                (a, ta), (b, tb) = got[True], got[False]
+                rows.append((abs(a.params["R_th_f_K_per_kW"] - b.params["R_th_f_K_per_kW"]),
+                             abs(a.params["CF_dp_f"] - b.params["CF_dp_f"]),
+                             a.objective - b.objective, a.success and b.success, ta, tb))
+            r = np.array(rows, dtype=float)
+            out[fam] = {"windows": len(rows), "max_abs_dev_R_th_f_K_per_kW": float(r[:, 0].max()),
+                        "max_abs_dev_CF_dp_f": float(r[:, 1].max()),
+                        "max_objective_excess": float(r[:, 2].max()), "all_succeeded": bool(r[:, 3].all()),
+                        "median_cpu_s_separable": float(np.median(r[:, 4])),
+                        "median_cpu_s_irls": float(np.median(r[:, 5]))}
+    finally:
+        C.SEPARABLE = saved
+    fams = [f for f, _ in families]
+    out["pass"] = all(out[f]["max_abs_dev_R_th_f_K_per_kW"] <= PATH_R_TOL and out[f]["max_objective_excess"] <= 1e-12
+                      and out[f]["all_succeeded"] for f in fams)
     return out

@@ -407,3 +407,17 @@ def test_separable_linear_parameter_stops_at_its_bound(initial, synth):
     data["dp_source_bar"] = 0.8 * fixed.dp_clean(data["V_source"].to_numpy() / 3600.0) / 1e5
     res = calibrate(data, fixed, DEFAULT_SPECS["fouling"])
     assert res.params["CF_dp_f"] == 1.0 and "CF_dp_f" in res.at_bound
+
+
+def test_calibration_paths_bench_on_a_plant_that_is_not_the_model(plant):
+    """``bench --only analysis``'s comparison of the two paths on a simulated plant whose
+    compressors are not plant.yaml's: the separable path within issue 12's tolerance of IRLS, never
+    a worse objective, both succeeding."""
+    from model.bench_analysis import PATH_R_TOL, calibration_paths
+    out = calibration_paths(plant, days=0.4, families=(("speed_peak", 3),))
+    sp = out["speed_peak"]
+    assert out["separable"] and sp["windows"] >= 2 and sp["all_succeeded"]
+    assert sp["max_abs_dev_R_th_f_K_per_kW"] <= PATH_R_TOL and sp["max_objective_excess"] <= 1e-12
+    assert out["pass"]
+    import model.calibration as C
+    assert C.SEPARABLE is True                    # the bench restores the switch

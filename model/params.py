@@ -220,7 +220,7 @@ class PlantParams:
         bad = [k for k in kw if k not in _PLANT_FIELDS]
         if bad:
             raise TypeError(f"PlantParams.replace: unknown field(s) {', '.join(map(repr, bad))}")
-        new = object.__new__(PlantParams)
+        new = object.__new__(type(self))
         d = new.__dict__
         d.update(self.__dict__)
         d.update(kw)

@@ -168,6 +168,9 @@ def calibration_paths(params, days: float = 3.0, families=PATH_FAMILIES) -> dict
                 rows.append((abs(a.params["R_th_f_K_per_kW"] - b.params["R_th_f_K_per_kW"]),
                              abs(a.params["CF_dp_f"] - b.params["CF_dp_f"]),
                              a.objective - b.objective, a.success and b.success, ta, tb))
+            if not rows:        # fewer usable samples than the commissioning and one window
+                out[fam] = {"windows": 0, "all_succeeded": False}
+                continue
             r = np.array(rows, dtype=float)
             out[fam] = {"windows": len(rows), "max_abs_dev_R_th_f_K_per_kW": float(r[:, 0].max()),
                         "max_abs_dev_CF_dp_f": float(r[:, 1].max()),
@@ -177,6 +180,7 @@ def calibration_paths(params, days: float = 3.0, families=PATH_FAMILIES) -> dict
     finally:
         C.SEPARABLE = saved
     fams = [f for f, _ in families]
-    out["pass"] = all(out[f]["max_abs_dev_R_th_f_K_per_kW"] <= PATH_R_TOL and out[f]["max_objective_excess"] <= 1e-12
-                      and out[f]["all_succeeded"] for f in fams)
+    out["pass"] = all(out[f]["windows"] > 0 and out[f]["all_succeeded"]
+                      and out[f]["max_abs_dev_R_th_f_K_per_kW"] <= PATH_R_TOL and out[f]["max_objective_excess"] <= 1e-12
+                      for f in fams)
     return out

@@ -421,3 +421,5 @@ def test_calibration_paths_bench_on_a_plant_that_is_not_the_model(plant):
     assert out["pass"]
     import model.calibration as C
     assert C.SEPARABLE is True                    # the bench restores the switch
+    short = calibration_paths(plant, days=0.05, families=(("speed_peak", 3),))   # 72 minutes: no window
+    assert short["speed_peak"] == {"windows": 0, "all_succeeded": False} and short["pass"] is False

@@ -73,7 +73,7 @@ class ReplaySettings:
     hindsight: bool = False           # learn the compressors on the whole history first
     surrogate: bool = True            # as the gateway's "optimizer: auto": the surrogate fitted
                                       # from the windows' optima replaces the search once it qualifies
-    lockstep_windows: int = 32        # consecutive windows analysed in lockstep (run_windows); a
+    lockstep_windows: int = 64        # consecutive windows analysed in lockstep (run_windows); a
                                       # window's surrogate is the one of the windows before its chunk
 
     @classmethod

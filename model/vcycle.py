@@ -181,8 +181,14 @@ class VResult:
 
 
 def columns_frame(cols: dict[str, np.ndarray], index) -> pd.DataFrame:
-    """The DataFrame of ``VResult.columns``' arrays (status and reason last)."""
-    frame = pd.DataFrame({k: v for k, v in cols.items() if k not in ("status", "reason")}, index=index)
+    """The DataFrame of ``VResult.columns``' arrays (status and reason last). The float columns go
+    in as one (columns x rows) block, the block pandas would consolidate a dict of them into (the
+    same layout, so reductions over the frame add in the same order), without its copies."""
+    keys = [k for k in cols if k not in ("status", "reason")]
+    block = np.empty((len(keys), len(index)))
+    for i, k in enumerate(keys):
+        block[i] = cols[k]
+    frame = pd.DataFrame(block.T, index=index, columns=keys, copy=False)
     frame["status"] = cols["status"]
     frame["reason"] = cols["reason"]
     return frame

@@ -238,3 +238,25 @@ def test_plant_params_replace_is_dataclasses_replace(plant):
         q.R_th_f = 0.0
     with pytest.raises(TypeError, match=r"^PlantParams.replace: unknown field\(s\) 'R_thf', 'x'$"):
         plant.replace(R_thf=1.0, x=2)
+
+
+def test_a_results_frame_is_the_plain_dict_frame_in_one_block(learned, plant):
+    """``columns_frame`` puts the float columns in as one block: the frame equals the one pandas
+    builds from the dict (values, dtypes, order, index) and keeps its layout (one float block of
+    columns x rows, C order), so that reductions over it add in the same order."""
+    from model.vcycle import columns_frame
+    data, *_ = learned
+    rows = data[list(INPUT_COLUMNS)].iloc[::5].reset_index(drop=True)
+    cols = solve_many(rows, plant, p_m_sp=np.linspace(9.0, 18.0, len(rows))).columns()
+    index = pd.RangeIndex(3, 3 + len(rows))
+    plain = pd.DataFrame({k: v for k, v in cols.items() if k not in ("status", "reason")}, index=index)
+    plain["status"], plain["reason"] = cols["status"], cols["reason"]
+    got = columns_frame(cols, index)
+    pd.testing.assert_frame_equal(got, plain, check_exact=True)
+    fb = [b for b in got._mgr.blocks if b.dtype == np.float64]
+    pb = [b for b in plain._mgr.blocks if b.dtype == np.float64]
+    assert len(fb) == len(pb) == 1
+    assert fb[0].values.shape == pb[0].values.shape == (len(cols) - 2, len(rows))
+    assert fb[0].values.flags["C_CONTIGUOUS"] and pb[0].values.flags["C_CONTIGUOUS"]
+    empty = columns_frame({k: v[:0] for k, v in cols.items()}, pd.RangeIndex(0))
+    assert list(empty.columns) == list(plain.columns) and len(empty) == 0

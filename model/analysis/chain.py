@@ -831,17 +831,19 @@ def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
     output and evaporating pressure (on the evenly spaced figure rows) and the learned eta_is curve
     at each sample."""
     data = task.data
-    out = pd.DataFrame({"timestamp": data["timestamp"].to_numpy()})
-    out["window_start"] = res.window_start
+    ts = data["timestamp"].to_numpy()
+    # the columns first, the frame once (inserting them one by one costs pandas' checks each time)
+    cols: dict = {"timestamp": ts, "window_start": res.window_start}
     series = res.detail.get("model_series")
     if series is not None:
         for kind in ("fixed", "adaptive"):
             f = series[kind]
+            at = f.index.to_numpy(dtype=int)
             for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}"),
                               ("p_e_bar", f"p_e_bar_{kind}")):
-                v = np.full(len(out), np.nan)
-                v[f.index.to_numpy(dtype=int)] = f[col].to_numpy(dtype=float)
-                out[name] = v
+                v = np.full(len(ts), np.nan)
+                v[at] = f[col].to_numpy(dtype=float)
+                cols[name] = v
     learner = task.learner
     if learner is not None:
         obs = task.obs if task.obs is not None else observe(data, task.fixed, learner.s)
@@ -851,5 +853,5 @@ def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
             v = np.full(len(obs), np.nan)
             if ok.any():
                 v[ok] = learner.eta_is(st, pi[ok], n[ok])
-            out[f"eta_is_{st}_model"] = v
-    return out
+            cols[f"eta_is_{st}_model"] = v
+    return pd.DataFrame(cols, index=pd.RangeIndex(len(ts)))

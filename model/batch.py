@@ -135,7 +135,7 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
     return frame_of(rows, params, columns, df.index)
 
 
-def simulate_many(df: pd.DataFrame, params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
+def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
                   ls_mode: str = "flag", R_th_f=None, cond_factor=None, seed=None,
                   seed_rows: pd.DataFrame | None = None, with_result: bool = False):
     """``simulate_batch`` with per-row evaporator fouling ``R_th_f`` [K/W] and condenser-unit
@@ -144,8 +144,12 @@ def simulate_many(df: pd.DataFrame, params: PlantParams, columns: tuple[str, ...
     call of the vectorised solver. ``seed``: a ``model.vcycle.VResult`` of nearby solutions to start
     from, of the rows ``seed_rows`` (each row starts from the nearest of them; None: the same rows
     in the same order). ``with_result``: return (frame, VResult) (VResult None on the scalar
-    path). With VECTORISED off: the scalar rows, one ``simulate_batch`` per distinct value."""
+    path). With VECTORISED off: the scalar rows, one ``simulate_batch`` per distinct value. ``df``
+    may be ``InputColumns`` (rows read again and again, e.g. a secant's): the frame then has a
+    RangeIndex."""
     n = len(df)
+    if isinstance(df, InputColumns) and not VECTORISED:
+        df = pd.DataFrame(df.cols)
     R = None if R_th_f is None else np.broadcast_to(np.asarray(R_th_f, dtype=float), (n,))
     K = None if cond_factor is None else np.broadcast_to(np.asarray(cond_factor, dtype=float), (n,))
     if VECTORISED:
@@ -158,7 +162,7 @@ def simulate_many(df: pd.DataFrame, params: PlantParams, columns: tuple[str, ...
             seed = None
         vres = solve_many(df, params, ls_mode=ls_mode, R_th_f=R, cond_factor=K, guess=seed,
                           guess_index=gidx)
-        frame = vres.frame(columns, df.index)
+        frame = vres.frame(columns, df.index if isinstance(df, pd.DataFrame) else None)
         return (frame, vres) if with_result else frame
     keys = list(zip(R if R is not None else [None] * n, K if K is not None else [None] * n))
     parts, order = [], []

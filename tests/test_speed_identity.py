@@ -260,3 +260,26 @@ def test_a_results_frame_is_the_plain_dict_frame_in_one_block(learned, plant):
     assert fb[0].values.flags["C_CONTIGUOUS"] and pb[0].values.flags["C_CONTIGUOUS"]
     empty = columns_frame({k: v[:0] for k, v in cols.items()}, pd.RangeIndex(0))
     assert list(empty.columns) == list(plain.columns) and len(empty) == 0
+
+
+def test_simulate_many_answers_input_columns_as_their_dataframe(learned, plant, monkeypatch):
+    """The window's model figures and condenser factor hand ``simulate_many`` their rows as input
+    columns: the same frame as from the DataFrame (with a RangeIndex), on the vectorised path with
+    per-row R_th,f and a seed at other rows, and on the scalar path."""
+    import model.batch as batch
+    from model.batch import simulate_many
+    data, *_ = learned
+    rows = data[list(INPUT_COLUMNS)].iloc[::9].reset_index(drop=True)
+    R = np.linspace(0.0, 2e-6, len(rows))
+    a, va = simulate_many(rows, plant, R_th_f=R, with_result=True)
+    b, vb = simulate_many(InputColumns.of(rows), plant, R_th_f=R, with_result=True)
+    pd.testing.assert_frame_equal(a, b, check_exact=True)
+    other = data[list(INPUT_COLUMNS)].iloc[3::11].reset_index(drop=True)
+    c = simulate_many(other, plant, seed=va, seed_rows=rows)
+    d = simulate_many(InputColumns.of(other), plant, seed=va, seed_rows=rows)
+    pd.testing.assert_frame_equal(c, d, check_exact=True)
+    monkeypatch.setattr(batch, "VECTORISED", False)
+    e = simulate_many(rows.iloc[:3], plant, R_th_f=R[:3])
+    f = simulate_many(InputColumns.of(rows.iloc[:3]), plant, R_th_f=R[:3])
+    pd.testing.assert_frame_equal(e, f, check_exact=True)
+    assert list(f.index) == [0, 1, 2] and f["status"].tolist() == e["status"].tolist()

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import pandas as pd
 
-from ..batch import INPUT_COLUMNS, numeric, simulate_batch, simulate_many, solved_mask
+from ..batch import INPUT_COLUMNS, InputColumns, numeric, simulate_batch, simulate_many, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
@@ -316,11 +316,12 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     meas = der["p_c_bar"].to_numpy(dtype=float)
     target = float(np.nansum([w[i] * np.nanmean(meas[g]) for i, g in enumerate(parts)]) / w.sum())
     lo, hi = math.log(0.3), math.log(3.0)
+    rows_in = InputColumns.of(rows)      # read once, not at every trial
 
     last = [None]       # the previous trial's solution: each trial starts from it
 
     def err(x: float) -> float:
-        f, v = simulate_many(rows, params, columns=("p_c_bar",), cond_factor=math.exp(x),
+        f, v = simulate_many(rows_in, params, columns=("p_c_bar",), cond_factor=math.exp(x),
                              seed=last[0], with_result=True)
         if not solved_mask(f).all():
             return math.nan
@@ -782,11 +783,11 @@ class AnalysisChain:
         n = len(der)
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
         sub = der.iloc[keep]
-        inputs = sub[list(INPUT_COLUMNS)]
         # the fixed model is the adaptive one without fouling (R_th,f 0; CF_dp,f does not enter the
-        # cycle): both in one call, the fixed rows per-row R_th,f 0
-        m = len(inputs)
-        both_in = pd.concat([inputs, inputs])
+        # cycle): both in one call, the fixed rows per-row R_th,f 0 (the rows as input columns:
+        # the numbers a DataFrame of them gives, without building it; the index is set below)
+        m = len(sub)
+        both_in = InputColumns({c: np.concatenate([a, a]) for c, a in InputColumns.of(sub).cols.items()})
         sim = simulate_many(both_in, adaptive, columns=cols,
                             R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)],
                             seed=seed[0] if seed else None, seed_rows=seed[1] if seed else None)

@@ -137,7 +137,7 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
 
 def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
                   ls_mode: str = "flag", R_th_f=None, cond_factor=None, seed=None,
-                  seed_rows: pd.DataFrame | None = None, with_result: bool = False):
+                  seed_rows: "pd.DataFrame | InputColumns | None" = None, with_result: bool = False):
     """``simulate_batch`` with per-row evaporator fouling ``R_th_f`` [K/W] and condenser-unit
     factors ``cond_factor`` (scalars or arrays; each row answered as with
     ``params.replace(R_th_f=...)`` and ``model.analysis.chain.scale_condenser(params, k)``), in one

@@ -185,8 +185,11 @@ def columns_frame(cols: dict[str, np.ndarray], index) -> pd.DataFrame:
     in as one (columns x rows) block, the block pandas would consolidate a dict of them into (the
     same layout, so reductions over the frame add in the same order), without its copies."""
     keys = [k for k in cols if k not in ("status", "reason")]
-    block = np.empty((len(keys), len(index)))
+    n = len(index)
+    block = np.empty((len(keys), n))
     for i, k in enumerate(keys):
+        if np.shape(cols[k]) != (n,):       # a row assignment would broadcast what pandas refuses
+            raise ValueError(f"column {k!r} has shape {np.shape(cols[k])}, the index {n} rows")
         block[i] = cols[k]
     frame = pd.DataFrame(block.T, index=index, columns=keys, copy=False)
     frame["status"] = cols["status"]

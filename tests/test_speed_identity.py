@@ -260,6 +260,9 @@ def test_a_results_frame_is_the_plain_dict_frame_in_one_block(learned, plant):
     assert fb[0].values.flags["C_CONTIGUOUS"] and pb[0].values.flags["C_CONTIGUOUS"]
     empty = columns_frame({k: v[:0] for k, v in cols.items()}, pd.RangeIndex(0))
     assert list(empty.columns) == list(plain.columns) and len(empty) == 0
+    short = dict(cols, COP=cols["COP"][:1])
+    with pytest.raises(ValueError, match=rf"^column 'COP' has shape \(1,\), the index {len(rows)} rows$"):
+        columns_frame(short, index)
 
 
 def test_simulate_many_answers_input_columns_as_their_dataframe(learned, plant, monkeypatch):

@@ -286,3 +286,48 @@ def test_simulate_many_answers_input_columns_as_their_dataframe(learned, plant, 
     f = simulate_many(InputColumns.of(rows.iloc[:3]), plant, R_th_f=R[:3])
     pd.testing.assert_frame_equal(e, f, check_exact=True)
     assert list(f.index) == [0, 1, 2] and f["status"].tolist() == e["status"].tolist()
+
+
+def test_a_learner_snapshot_is_its_pickled_copy_and_later_updates_leave_it(learned, plant):
+    """A replay's in-process window task takes a snapshot of the learner instead of a pickled copy:
+    the same state to the bit (every statistic, bin, coverage weight, drive sum, the local curves),
+    and the learner's next update changes the learner, not the snapshot."""
+    data, _, _, _ = learned
+    obs = observe(data.assign(timestamp=pd.to_datetime(data["timestamp"], utc=True)), plant)
+    half = len(obs) // 2
+    lrn = CompressorLearner(plant)
+    lrn.update(obs.iloc[:half])
+    lrn.apply(plant)                      # the local curves cached, as pass 1 may leave them
+    snap, pickled = lrn.snapshot(), pickle.loads(pickle.dumps(lrn))
+    lrn.update(obs.iloc[half:])
+    assert snap.to_dict() == pickled.to_dict()
+    assert lrn.to_dict() != snap.to_dict()          # the update reached the learner only
+    for st in ("LS", "HS"):
+        assert snap.drive_factor(st) == pickled.drive_factor(st)
+        for c in ("eta_is", "eta_vol"):
+            a, b = snap.local_curves(st, c), pickled.local_curves(st, c)
+            assert (a is None) == (b is None)
+            if a is not None:
+                np.testing.assert_array_equal(a.coef, b.coef)
+                np.testing.assert_array_equal(a.valid, b.valid)
+
+
+def test_the_refit_for_correlated_residuals_reuses_the_fits_to_the_bit():
+    """``fit_fouling`` refits with a larger overlap when the residuals are serially correlated;
+    the least-squares fits do not depend on the overlap and are reused: the result equals a fit at
+    that overlap from scratch (with and without a prior)."""
+    from model.analysis.forecast import LawPrior, _fit_fouling, fit_fouling
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.2, 30.0, 240)
+    e = np.zeros(len(t))
+    for i in range(1, len(t)):
+        e[i] = 0.85 * e[i - 1] + rng.normal(0.0, 0.004)
+    y = 0.02 + 0.25 * (1.0 - np.exp(-t / 9.0)) + e
+    se = np.full(len(t), 0.01)
+    for prior in (None, LawPrior(0.1, 0.03, 0.27, 0.05, 2)):
+        fit = fit_fouling(t, y, se, prior=prior)
+        assert fit.overlap > 1.0 and fit.extra["residual_rho"] > 2.0 / math.sqrt(len(t))   # refitted
+        ref = _fit_fouling(t, y, se, overlap=fit.overlap, prior=prior)
+        assert (fit.law, fit.reason, fit.a0, fit.r0, fit.k, fit.s2, fit.dof) == \
+            (ref.law, ref.reason, ref.a0, ref.r0, ref.k, ref.s2, ref.dof)
+        np.testing.assert_array_equal(fit.cov, ref.cov)

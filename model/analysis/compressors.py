@@ -31,6 +31,7 @@ Units: SI inside (Pa, K, J/kg, kg/s, W); observation frames carry names with uni
 """
 from __future__ import annotations
 
+import copy
 import math
 import threading
 from contextlib import contextmanager
@@ -1366,6 +1367,25 @@ class CompressorLearner:
 
     def copy(self) -> "CompressorLearner":
         return CompressorLearner.from_dict(self.to_dict(), _params_stub(self.prior), self.s)
+
+    def snapshot(self) -> "CompressorLearner":
+        """This learner as it is now, unchanged by its later updates: what a pickled copy gives (a
+        replay's window task in one process), at a fraction of the cost. ``update`` changes the
+        statistics' arrays, the coverage and bin dicts and the drive and subcooling sums in place,
+        so those are copied; the prior, the settings, the prior's pseudo-statistics and the
+        commissioning curves are never changed after construction and are shared; the cached local
+        curves (rebuilt from the statistics on demand, replaced by ``update``) are shared entries of
+        a dict of the snapshot's own."""
+        out = copy.copy(self)
+        out.stats = {k: _Stats(v.A.copy(), v.b.copy(), v.yy, v.w, v.rho1) for k, v in self.stats.items()}
+        out.bins = {k: _BinStats(v.bin_pi, v.bin_n, {q: a.copy() for q, a in v.A.items()},
+                                 {q: a.copy() for q, a in v.b.items()}) for k, v in self.bins.items()}
+        out.coverage = {k: _Coverage(v.bin_pi, v.bin_n, dict(v.bins)) for k, v in self.coverage.items()}
+        out.drive = {k: list(v) for k, v in self.drive.items()}
+        out.subcooling = list(self.subcooling)
+        out._local = dict(self._local)
+        out._fit_cache = None if self._fit_cache is None else dict(self._fit_cache)
+        return out
 
 
 def _params_stub(prior: dict):

@@ -466,7 +466,9 @@ def fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, ov
     fit is redone with overlap = (1 + rho)/(1 - rho) (at most n/4) when that is larger than the
     given one: wider bands and a law choice that needs more evidence (``FitSettings.autocorrelation``)."""
     s = settings or FitSettings()
-    fit = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=overlap, prior=prior, settings=s)
+    memo: dict = {}     # the least-squares profiles do not depend on overlap: the refit reuses them
+    fit = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=overlap, prior=prior, settings=s,
+                       memo=memo)
     if not s.autocorrelation:
         return fit
     t = np.asarray(t_days, dtype=float).ravel()
@@ -484,13 +486,15 @@ def fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, ov
     eff = min((1.0 + rho) / max(1.0 - rho, 1e-6), n / 4.0)
     if eff <= overlap:
         return fit
-    out = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=eff, prior=prior, settings=s)
+    out = _fit_fouling(t_days, y, se, law=law, floor=floor, overlap=eff, prior=prior, settings=s,
+                       memo=memo)
     out.extra["residual_rho"] = rho
     return out
 
 
 def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, overlap: float = 1.0,
-                 prior: LawPrior | None = None, settings: FitSettings | None = None) -> FoulingFit:
+                 prior: LawPrior | None = None, settings: FitSettings | None = None,
+                 memo: dict | None = None) -> FoulingFit:
     """Fit the fouling law to the window estimates since the last reset.
 
     t_days : days since the last reset (commissioning or a CIP's end) of each estimate [day], >= 0
@@ -502,6 +506,9 @@ def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, o
     prior : the plant's law from earlier cycles (``law_prior``). With a prior the Kern–Seaton law is
         fitted with k and y_inf as Gaussian pseudo-observations (weighted with the data's residual
         scale s^2 of the fit without the prior) and used unless ``law="linear"``.
+    memo : a dict shared by calls on the same data (t_days, y, se, floor, prior) that differ in
+        ``overlap`` or ``law`` only: the least-squares fits (which depend on neither) are computed
+        once and reused, the same numbers.
     Raises NotEnoughData, or ForecastError for malformed input.
     """
     s = settings or FitSettings()
@@ -541,13 +548,17 @@ def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, o
             C = np.full((p, p), np.inf)
         return C, s2_
 
+    memo = {} if memo is None else memo
     # ---- the family without a prior: best k > 0 and the linear member ---------------------------
-    k_ks, ssr_ks, ssr_lin = _profile(t, yc, sw, k_hi, lambda k: _ls_at(k, t, yc, sw)[2],
-                                     lambda ks: _ls_many(ks, t, yc, sw)[2])
-    a_ks, r_ks, ssr_ks = _ls_at(k_ks, t, yc, sw)
-    a_lin, r_lin, ssr_lin = _ls_at(0.0, t, yc, sw)
-    if ssr_ks > ssr_lin:
-        k_ks, a_ks, r_ks, ssr_ks = 0.0, a_lin, r_lin, ssr_lin
+    if "free" not in memo:
+        k_ks, ssr_ks, ssr_lin = _profile(t, yc, sw, k_hi, lambda k: _ls_at(k, t, yc, sw)[2],
+                                         lambda ks: _ls_many(ks, t, yc, sw)[2])
+        a_ks, r_ks, ssr_ks = _ls_at(k_ks, t, yc, sw)
+        a_lin, r_lin, ssr_lin = _ls_at(0.0, t, yc, sw)
+        if ssr_ks > ssr_lin:
+            k_ks, a_ks, r_ks, ssr_ks = 0.0, a_lin, r_lin, ssr_lin
+        memo["free"] = (k_ks, a_ks, r_ks, ssr_ks, a_lin, r_lin, ssr_lin)
+    k_ks, a_ks, r_ks, ssr_ks, a_lin, r_lin, ssr_lin = memo["free"]
 
     def linear_fit(reason):
         J = np.stack([sw, sw * t], axis=1)
@@ -568,9 +579,11 @@ def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, o
                 y_inf = np.where(ks > 0, a + r / np.where(ks > 0, ks, 1.0), np.inf)
             v = ssr_d + s2_0 * ((y_inf - row[1]) / prior.y_inf_sd) ** 2 + s2_0 * ((ks - prior.k) / prior.k_sd) ** 2
             return np.where(ks > 0, v, np.inf)
-        k_p, _, _ = _profile(t, yc, sw, max(k_hi, 10 * prior.k), lambda k: float(grid_objective(np.array([k]))[0]),
-                             grid_objective)
-        a_p, r_p, ssr_p = _ls_at(k_p, t, yc, sw, row)
+        if "prior" not in memo:
+            k_p, _, _ = _profile(t, yc, sw, max(k_hi, 10 * prior.k),
+                                 lambda k: float(grid_objective(np.array([k]))[0]), grid_objective)
+            memo["prior"] = (k_p, *_ls_at(k_p, t, yc, sw, row))
+        k_p, a_p, r_p, ssr_p = memo["prior"]
         if k_p <= 0 or r_p <= 0:
             raise ForecastError("the Kern–Seaton law with the prior cannot be fitted to these data")
         J = np.stack([sw, sw * phi(t, k_p), sw * r_p * dphi_dk(t, k_p)], axis=1)

@@ -649,7 +649,11 @@ def _analyse_pickled(chain_blob: bytes, task_blob: bytes) -> WindowPartial:
 def _analyse_chunk(chain: AnalysisChain, task_blobs: list) -> list:
     """Pass 2 of consecutive windows (their pickled tasks) in lockstep (``model.lockstep``): their
     solver calls answered together. A window whose analysis raises raises here, as alone."""
-    tasks = [pickle.loads(b) for b in task_blobs]
+    return _analyse_tasks(chain, [pickle.loads(b) for b in task_blobs])
+
+
+def _analyse_tasks(chain: AnalysisChain, tasks: list) -> list:
+    """``_analyse_chunk`` of the tasks themselves."""
     if len(tasks) == 1:
         return [chain.analyse(tasks[0])]
     out = lockstep.run([(lambda t=t: chain.analyse(t)) for t in tasks])
@@ -666,6 +670,16 @@ def _analyse_chunk_pickled(chain_blob: bytes, task_blobs: list) -> list:
         return _analyse_chunk(pickle.loads(chain_blob), task_blobs)
 
 
+def _snapshot(task):
+    """A task as pass 1 leaves it, unchanged by pass 1's later windows, for pass 2 in this process:
+    of everything in it only the learner is still pass 1's (its next windows update it in place;
+    the rest is the window's own or replaced, never changed, by pass 1), so the learner is a
+    snapshot (``CompressorLearner.snapshot``) — the numbers of a pickled copy, without pickling."""
+    if task.learner is not None:
+        task.learner = task.learner.snapshot()
+    return task
+
+
 PASS1_BLOCK = 32          # windows whose measured side pass 1 computes in one call
 MAX_PENDING = 16           # windows in flight at an executor (bounds the pickled tasks held)
 LOCKSTEP_WINDOWS = ReplaySettings.lockstep_windows   # run_windows' default chunk
@@ -677,8 +691,9 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
 
     The tasks are taken in chunks of ``lockstep_windows`` (default LOCKSTEP_WINDOWS) consecutive
     windows whose pass 2 runs in lockstep (``model.lockstep``: each solver step of the chunk's
-    windows in one call of the vectorised solver). Each task is pickled the moment pass 1 has
-    produced it (a snapshot: pass 1 goes on to change the learner for the next window). The chunks
+    windows in one call of the vectorised solver). Each task is frozen the moment pass 1 has
+    produced it (pass 1 goes on to change the learner for the next window): pickled for an
+    executor, its learner snapshotted here (``_snapshot``; the same numbers). The chunks
     are the same whatever runs them, so the results are too: without an executor the chunks are
     analysed here, one after the other; with one, each chunk is submitted as soon as it is complete,
     at most ``max_pending`` (default MAX_PENDING) windows' worth in flight (at least two chunks).
@@ -690,24 +705,24 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
             yield chain.analyse(t)
         return
 
-    def chunks():
-        blobs = []
+    def chunks(freeze):
+        part = []
         for t in tasks:
-            blobs.append(pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL))
-            if len(blobs) == k:
-                yield blobs
-                blobs = []
-        if blobs:
-            yield blobs
+            part.append(freeze(t))
+            if len(part) == k:
+                yield part
+                part = []
+        if part:
+            yield part
 
     if executor is None:
-        for blobs in chunks():
-            yield from _analyse_chunk(chain, blobs)
+        for part in chunks(_snapshot):
+            yield from _analyse_tasks(chain, part)
         return
     chain_blob = pickle.dumps(chain, protocol=pickle.HIGHEST_PROTOCOL)
     max_chunks = max(2, int(max_pending or MAX_PENDING) // k)
     pending: deque = deque()
-    for blobs in chunks():
+    for blobs in chunks(lambda t: pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL)):
         pending.append(executor.submit(_analyse_chunk_pickled, chain_blob, blobs))
         while len(pending) >= max_chunks:
             yield from pending.popleft().result()

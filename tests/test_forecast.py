@@ -289,3 +289,35 @@ def test_to_dict_is_plain_numbers():
     d = fit_fouling(t, 1e-3 + 1e-4 * t, np.full(len(t), 1e-5)).to_dict()
     assert d["law"] == "linear" and d["y_inf"] is None and d["tau_days"] is None
     assert all(isinstance(v, (int, float, str, dict, type(None))) for v in d.values())
+
+
+def test_the_profile_finds_the_best_k_as_a_tight_bounded_search_does():
+    """``_profile``'s nested grids (array evaluations, in place of a bounded Brent search since stop
+    32) find the least-squares k of a Kern–Seaton series to within PROFILE_K_RTOL of a bounded
+    search at a tight tolerance, with an objective no worse than its by more than
+    PROFILE_OBJ_RTOL; and where the profile falls toward k = 0 (a straight line), a k within 1e-5
+    of the bracket's top, as the bounded search on (0, b) with tolerance 1e-6 b ends."""
+    from scipy import optimize as sopt
+    from model.analysis.forecast import _ls_at, _ls_many, _profile
+    PROFILE_K_RTOL, PROFILE_OBJ_RTOL = 1e-5, 1e-10
+    rng = np.random.default_rng(3)
+    for tau, noise in ((4.0, 0.002), (12.0, 0.004), (30.0, 0.003)):
+        t = np.linspace(0.1, 25.0, 150)
+        y = 0.3 * (1.0 - np.exp(-t / tau)) + rng.normal(0.0, noise, len(t))
+        sw = np.full(len(t), 100.0)
+        k_hi = 50.0 / (t.max() - t.min())
+        k, v, v0 = _profile(t, y, sw, k_hi, lambda k: _ls_at(k, t, y, sw)[2], lambda ks: _ls_many(ks, t, y, sw)[2])
+        ref = sopt.minimize_scalar(lambda k: _ls_at(k, t, y, sw)[2], bounds=(0.5 * k, 2.0 * k), method="bounded",
+                                   options={"xatol": 1e-12 * k})
+        assert abs(k - ref.x) <= PROFILE_K_RTOL * ref.x, (tau, k, ref.x)
+        assert v <= ref.fun * (1.0 + PROFILE_OBJ_RTOL)
+        assert v0 == pytest.approx(_ls_at(0.0, t, y, sw)[2], rel=1e-12)      # the straight line's
+        assert abs(1.0 / k - tau) < 0.25 * tau          # the law's time constant, through the noise
+    # a straight line: the profile falls toward k = 0
+    t = np.linspace(0.1, 25.0, 150)
+    y = 0.01 * t
+    sw = np.ones(len(t))
+    k_hi = 50.0 / (t.max() - t.min())
+    k, v, v0 = _profile(t, y, sw, k_hi, lambda k: _ls_at(k, t, y, sw)[2], lambda ks: _ls_many(ks, t, y, sw)[2])
+    b = np.geomspace(k_hi * 1e-4, k_hi, 60)[1]
+    assert 0.0 < k <= 1e-5 * b and v0 <= v

@@ -16,11 +16,14 @@ nothing runs); each plant's files are read by its task, so a plant whose history
 missing or broken fails alone (fleet.csv status ``failed`` with the reason) and the others go on.
 
 Each plant runs as one task (``replay_plant``) in a worker: it reads its own plant.yaml and
-history (paths must be readable by the workers: always with the embedded LocalCluster, on a shared
-file system with a remote scheduler), replays sequentially (one core per plant: plants are the
-parallelism) and returns its ReplayResult; the client writes DIR/<name>/ (the same files as
-``hp-edge replay``) and one table across plants, DIR/fleet.csv and DIR/fleet.txt. A plant that
-fails is reported with its reason (fleet.csv status/reason) and the others go on.
+history, replays sequentially (one core per plant: plants are the parallelism), writes DIR/<name>/
+(the same files as ``hp-edge replay``) and returns its line of the fleet table; the client writes
+the table across plants, DIR/fleet.csv and DIR/fleet.txt. Paths (the plants' files and DIR) must
+be reachable by the workers: always with the embedded LocalCluster, on a shared file system with a
+remote scheduler. (Until stop 32 the task returned the whole ReplayResult and the client wrote
+every plant's directory: a plant-year's result is ~100 MB and its samples.csv ~6 s of writing, one
+plant after the other on the client — ~10 minutes for 100 plant-years, whatever the workers.) A
+plant that fails is reported with its reason (fleet.csv status/reason) and the others go on.
 
 ``executor``: anything with concurrent.futures' ``submit`` whose futures have ``result()``: a
 ``distributed.Client`` (the cluster engine), or a stdlib executor. ``dask``/``distributed`` are
@@ -69,9 +72,10 @@ class PlantOutcome:
     name: str
     ok: bool
     reason: str = ""
-    result: object = None          # model.analysis.replay.ReplayResult
+    result: object = None          # model.analysis.replay.ReplayResult (None once written)
     reading: list = field(default_factory=list)    # what reading the history skipped
-    seconds: float = math.nan
+    seconds: float = math.nan      # the replay's (reading the files included, writing not)
+    row: dict | None = None        # its fleet-table line, once the task wrote its directory
 
 
 # --------------------------------------------------------------------------------------------------
@@ -141,17 +145,34 @@ def load_plants(path: str | Path) -> list[PlantEntry]:
 # --------------------------------------------------------------------------------------------------
 # one plant (runs in a worker)
 # --------------------------------------------------------------------------------------------------
-def replay_plant(entry: PlantEntry) -> PlantOutcome:
+def replay_plant(entry: PlantEntry, out_dir: str | None = None) -> PlantOutcome:
     """Read one plant's plant.yaml and history, replay it (sequentially, in this worker) and return
-    the result, or the reason it failed. Never raises: one plant cannot stop the fleet."""
+    the result, or the reason it failed. With ``out_dir`` the task writes the plant's directory
+    there itself (``write_plant_dir``) and returns its fleet-table line instead of the result.
+    Never raises: one plant cannot stop the fleet."""
     from model.analysis.replay import replay_memory
     t0 = time.perf_counter()
     try:
         with replay_memory():             # reading the history too, not only the replay
-            return _replay_plant(entry, t0)
+            o = _replay_plant(entry, t0)
+        return o if out_dir is None else write_plant_dir(entry, o, Path(out_dir))
     except Exception as exc:       # noqa: BLE001 - the fleet's boundary: report it, go on
         return PlantOutcome(entry.name, False, f"{type(exc).__name__}: {exc}",
                             seconds=time.perf_counter() - t0)
+
+
+def write_plant_dir(e: PlantEntry, o: PlantOutcome, d: Path) -> PlantOutcome:
+    """Write a replayed plant's directory ``d`` (``hp-edge replay``'s files) and return the outcome
+    with its fleet-table line and without the result; a directory that cannot be written fails
+    the plant with the reason."""
+    from edge.replaydir import write_replay_dir
+    if o.ok:
+        try:
+            write_replay_dir(o.result, d, {"plant": e.plant, "history": e.history, "fleet": True},
+                             "\n".join(o.reading))
+        except OSError as exc:
+            o = PlantOutcome(e.name, False, f"writing {d}: {exc.strerror or exc}", seconds=o.seconds)
+    return PlantOutcome(o.name, o.ok, o.reason, reading=o.reading, seconds=o.seconds, row=plant_row(e, o, d))
 
 
 def _replay_plant(entry: PlantEntry, t0: float) -> PlantOutcome:
@@ -196,24 +217,18 @@ def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progres
     """Replay every plant through ``executor`` (None: one after the other, here), write each
     plant's directory and the fleet table (DIR/fleet.csv, DIR/fleet.txt); return the table."""
     import pandas as pd
-    from edge.replaydir import write_replay_dir
-    out = Path(out)
+    out = Path(out).absolute()         # the workers write there (their own working directory differs)
     out.mkdir(parents=True, exist_ok=True)
     if executor is None:
-        outcomes = (replay_plant(e) for e in entries)
+        outcomes = (replay_plant(e, str(out / e.name)) for e in entries)
     else:
-        futures = {i: executor.submit(replay_plant, entries[i]) for i in submission_order(entries)}
+        futures = {i: executor.submit(replay_plant, entries[i], str(out / entries[i].name))
+                   for i in submission_order(entries)}
         outcomes = (_outcome(futures[i], e) for i, e in enumerate(entries))
     rows = []
     for k, (e, o) in enumerate(zip(entries, outcomes), start=1):
-        d = out / e.name
-        if o.ok:
-            try:
-                write_replay_dir(o.result, d, {"plant": e.plant, "history": e.history,
-                                               "fleet": True}, "\n".join(o.reading))
-            except OSError as exc:
-                o = PlantOutcome(e.name, False, f"writing {d}: {exc.strerror or exc}", seconds=o.seconds)
-        rows.append(plant_row(e, o, d))
+        # the task's line (it wrote the directory); a task that died has none
+        rows.append(o.row if o.row is not None else plant_row(e, o, out / e.name))
         if progress is not None:
             progress(k, len(entries))
     table = pd.DataFrame(rows, columns=list(FLEET_COLUMNS))

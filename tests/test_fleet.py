@@ -174,6 +174,30 @@ def test_a_fleet_plant_equals_a_single_process_replay(fleet_run, fleet_dir, tmp_
         assert a == b, f
 
 
+def test_a_plant_task_writes_its_directory_and_returns_its_line_only(fleet_run, fleet_dir, tmp_path):
+    """Each task writes its plant's directory (the client would write them one after the other:
+    ~6 s a plant-year) and hands the client its fleet-table line, not the result; a directory it
+    cannot write fails the plant with the reason."""
+    from edge.fleet import load_plants, replay_plant
+    proc, out = fleet_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    e = load_plants(fleet_dir / "PLANTS.yaml")[0]
+    assert e.name == "north-1"
+    d = tmp_path / "north-1"
+    with time_limit(90):
+        o = replay_plant(e, str(d))
+    assert o.ok and o.result is None and o.row["status"] == "ok" and o.row["out_dir"] == str(d)
+    assert o.row["windows_ok"] >= 3
+    assert (d / "windows.csv").read_bytes() == (out / "north-1" / "windows.csv").read_bytes()
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the plant's directory would go\n", encoding="utf-8")
+    with time_limit(90):
+        o = replay_plant(e, str(blocked))
+    assert not o.ok and o.result is None
+    assert o.reason == f"writing {blocked}: File exists"
+    assert (o.row["status"], o.row["reason"], o.row["out_dir"]) == ("failed", o.reason, "")
+
+
 # ---- (c) PLANTS.yaml errors ---------------------------------------------------------------------------
 def _plants(tmp_path, text: str) -> Path:
     shutil.copy(PLANT_YAML, tmp_path / "plant.yaml")
@@ -258,7 +282,7 @@ def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_
         def __init__(self):
             self.names = []
 
-        def submit(self, fn, entry):
+        def submit(self, fn, entry, *args):
             self.names.append(entry.name)
             f = Future()
             f.set_exception(RuntimeError("not run"))

@@ -335,7 +335,8 @@ def bench_fleet(params=None, plants: int = 8, days: float = 30.0, workers: int =
             "how": "arithmetic from the measured per-window cost on one worker (one core): 100 plants x "
                    "365 days x windows per plant-day x seconds per window / 16 workers; 'one_task_per_plant' "
                    "is the current design's bound (each plant-year is one task on one core: ceil(100/16) "
-                   "plant-years in a row per worker); cluster start and I/O not included",
+                   "plant-years in a row per worker); the cluster's start not included, each task's reading of "
+                   "its files and writing of its plant's directory included",
             "plant_year_one_core_s": plant_year_s,
             "windows_spread_evenly_min": ideal_s / 60.0,
             "one_task_per_plant_min": per_plant_s / 60.0},

@@ -455,6 +455,7 @@ def _profile(t, yc, sw, k_hi, objective, grid_objective):
     a, b = ks[i - 1], ks[min(i + 1, len(ks) - 1)]
     k_best, v_best = float(ks[i]), float(vals[i])
     g = gv = None
+    linear = False          # the last grid evaluated was a linear one (the parabola's spacing)
     grids = [None] * PROFILE_NESTED
     if a == 0.0 and b > 0.0:
         # the best k is the grid's smallest: where the profile still falls toward k = 0, down to
@@ -463,13 +464,13 @@ def _profile(t, yc, sw, k_hi, objective, grid_objective):
     for grid in grids:
         if not b > a:
             break
-        g = np.linspace(a, b, PROFILE_POINTS) if grid is None else grid
+        g, linear = (np.linspace(a, b, PROFILE_POINTS), True) if grid is None else (grid, False)
         gv = np.asarray(grid_objective(g), dtype=float)
         j = int(np.argmin(gv))
         if gv[j] <= v_best and g[j] > 0.0:
             k_best, v_best = float(g[j]), float(gv[j])
         a, b = g[max(j - 1, 0)], g[min(j + 1, len(g) - 1)]
-    if g is not None and grids[-1] is None and 0 < j < len(g) - 1 and np.isfinite(gv[j - 1:j + 2]).all():
+    if linear and 0 < j < len(g) - 1 and np.isfinite(gv[j - 1:j + 2]).all():
         y0, y1, y2 = gv[j - 1], gv[j], gv[j + 1]
         den = y0 - 2.0 * y1 + y2
         if den > 0:

@@ -376,7 +376,39 @@ def solve_merged(reqs: list[dict]) -> list[VResult]:
     with np.errstate(all="ignore"):
         v = _solve_core(t0, cols, n, p0, reqs[0]["ls_mode"], None, R, None, deltas, parts, comps, row_params,
                         group, cf, cf_dp)
-    return [take_rows(v, np.arange(a, b)) for a, b in zip(starts, ends)]
+    return split_rows(v, starts, ends)
+
+
+def split_rows(v: VResult, starts, ends) -> list[VResult]:
+    """``[take_rows(v, np.arange(a, b)) for a, b in zip(starts, ends)]``: which fields are per-row
+    arrays is found once for all the parts, and each part's rows are a copied slice (the same
+    arrays as the index's; a merged call splits into one part per request, ~60 of them)."""
+    m = len(v)
+
+    def per_row(val) -> bool:
+        return isinstance(val, np.ndarray) and val.shape[:1] == (m,)
+    plan = []
+    for f in dataclasses.fields(v):
+        val = getattr(v, f.name)
+        if per_row(val):
+            plan.append((f.name, 1, val))
+        elif isinstance(val, dict):
+            plan.append((f.name, 2, [(a, b, per_row(b)) for a, b in val.items()]))
+        else:
+            plan.append((f.name, 0, val))
+    out = []
+    for a, b in zip(starts, ends):
+        a, b = int(a), int(b)
+        kw = {}
+        for name, kind, val in plan:
+            if kind == 1:
+                kw[name] = val[a:b].copy()
+            elif kind == 2:
+                kw[name] = {k: (x[a:b].copy() if rows else x) for k, x, rows in val}
+            else:
+                kw[name] = val
+        out.append(type(v)(**kw))
+    return out
 
 
 def take_rows(v: VResult, idx: np.ndarray) -> VResult:
@@ -510,11 +542,12 @@ def _solve_core(t0, cols, n, params, ls_mode, force_scalar, R_th_f, cond, deltas
             tasks.append(go_cold(todo))
         run(*tasks)
     t1 = t2 = time.process_time()
-    for i in np.flatnonzero(cold):
-        if out.code[i] == FALLBACK:
-            fallback[i] = True
-        elif out.code[i]:
-            status[i], reason[i] = out.code[i], out.msg[i]
+    ci = np.flatnonzero(cold)             # the cold rows' outcomes, by array tests (every row)
+    codes = out.code[ci]
+    fb = codes == FALLBACK
+    fallback[ci[fb]] = True
+    why = ci[(codes != "") & ~fb]
+    status[why], reason[why] = out.code[why], out.msg[why]
     warm = np.zeros(n, dtype=bool)
     state = empty_state(n)
     state.update(T_si=T_si, T_so_in=T_so.copy(), T_ki=T_ki, V_s=V_s, V_k=V_k, T_m_sp=T_m_sp)
@@ -672,7 +705,12 @@ def _assemble(fs: Flowsheet, rows, dst, T_m, T_c, hs_sat, ls_sat, flag, flag_msg
     for k, a in v.items():
         values[k][dst[keep]] = a[keep]
     tol = LS_SPEED_LOOSE * ls_c.N_nom
-    for j in np.flatnonzero(keep):
+    # the rows a status is set for (a solver's flag, or a limit missed), picked with array tests;
+    # each of them then as before, in row order (the comparisons are False for NaN either way)
+    flagged = flag[dst] != ""
+    with np.errstate(invalid="ignore"):
+        act = keep & (flagged | (N_LS > ls_c.N_max + tol) | (N_LS < ls_c.N_min - tol) | (pinch < 0.0))
+    for j in np.flatnonzero(act):
         i = dst[j]
         if flag[i]:
             status[i], reason[i] = flag[i], flag_msg[i]

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import pandas as pd
 
-from ..batch import INPUT_COLUMNS, InputColumns, numeric, simulate_batch, simulate_many, solved_mask
+from ..batch import INPUT_COLUMNS, InputColumns, floats, numeric, simulate_batch, simulate_many, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
@@ -461,7 +461,7 @@ class AnalysisChain:
         """``prepare`` past its first checks (``der``: the measured side computed already)."""
         der = derived(data, fixed) if der is None else der
         for c in INPUT_COLUMNS:
-            der[c] = pd.to_numeric(data[c], errors="coerce").to_numpy(dtype=float)
+            der[c] = floats(data[c])
         task.der = der
         res.p_m_sp_actual_barg = float(der["p_m_sp"].mean())
         learner = state.learner
@@ -486,9 +486,8 @@ class AnalysisChain:
         # ---- heat balance of the window (shaft power: the electric power over the drive factor)
         d_LS = learner.drive_factor("LS") if learner is not None else fixed.comp_LS.drive_factor
         d_HS = learner.drive_factor("HS") if learner is not None else fixed.comp_HS.drive_factor
-        W_shaft = (pd.to_numeric(data["W_LS"], errors="coerce") / d_LS
-                   + pd.to_numeric(data["W_HS"], errors="coerce") / d_HS)
-        closure = 100.0 * (der["Q_sink_kW"] - der["Q_source_kW"] - W_shaft.to_numpy()) / der["Q_sink_kW"]
+        W_shaft = floats(data["W_LS"]) / d_LS + floats(data["W_HS"]) / d_HS
+        closure = 100.0 * (der["Q_sink_kW"] - der["Q_source_kW"] - W_shaft) / der["Q_sink_kW"]
         res.heat_balance_pct = float(np.nanmedian(closure))
         if not abs(res.heat_balance_pct) <= self.s.heat_balance_limit_pct:
             res.status = (f"failed: measured heat balance does not close ({res.heat_balance_pct:+.1f} % "
@@ -498,7 +497,7 @@ class AnalysisChain:
             return task
         # ---- the LS speed controller's set point: T_source,out where the LS is not at its limit
         if self.s.optimize or self.s.cip.enabled:
-            n_ls = pd.to_numeric(data["N_LS"], errors="coerce").to_numpy(dtype=float) \
+            n_ls = floats(data["N_LS"]) \
                 if "N_LS" in data.columns else np.full(len(der), np.nan)
             n_max = fixed.comp_LS.N_max
             free = np.isfinite(n_ls) & (n_ls < n_max - LS_SATURATED_RPM)

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import pandas as pd
 
+from ..batch import floats
 from ..fluid import Fluid, PropertyError, get_fluid
 from ..proptable import get_tables
 from ..params import POLY_BASIS, Compressor, PlantParams
@@ -292,7 +293,7 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
     def col(name):
         if name not in data.columns:
             return np.full(n, np.nan)
-        return pd.to_numeric(data[name], errors="coerce").to_numpy(dtype=float)
+        return floats(data[name])
 
     p_e = (col("p_suc_LS") + amb) * BAR
     p_m = (0.5 * (col("p_dis_LS") + col("p_suc_HS")) + amb) * BAR

@@ -482,6 +482,30 @@ def _profile(t, yc, sw, k_hi, objective, grid_objective):
     return k_best, v_best, float(vals[0])
 
 
+def _prior_covariance(J: np.ndarray, k: float, r0: float, s2: float, overlap: float,
+                      prior: LawPrior) -> np.ndarray:
+    """Covariance of (a0, r0, k) of a Kern–Seaton fit with the prior ``prior``, from the weighted
+    Jacobian ``J`` of (a0, r0, k) at the fit, the residual variance factor s2 and the overlap.
+
+    Computed in (a0, y_inf - floor, k), where the prior is two independent pseudo-observations
+    (a diagonal information) and nothing is divided by k, then mapped to (a0, r0 = k (y_inf - floor
+    - a0), k). The same matrix as inverting the information in (a0, r0, k), where the prior on y_inf
+    enters through the gradient (1, 1/k, -r0/k^2) — except where the data show no growth and the
+    best k tends to 0 with r0/k held: that information is then near-singular (condition ~1e16),
+    and the band's upper edge depended on where the search over k stopped near 0 (up to 45 % of the
+    data's range between two searches that both found k ~ 1e-9 d^-1). Here it does not."""
+    T = np.array([[1.0, 0.0, 0.0], [-k, k, r0 / k], [0.0, 0.0, 1.0]])    # d(a0, r0, k)/d(a0, Y, k)
+    Jy = J @ T
+    info = Jy.T @ Jy / (max(s2, 1e-300) * overlap)
+    info[1, 1] += 1.0 / prior.y_inf_sd ** 2
+    info[2, 2] += 1.0 / prior.k_sd ** 2
+    try:
+        C = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full((3, 3), np.inf)
+    return T @ C @ T.T
+
+
 PROFILE_NESTED = 3      # the profile's nested linear grids after its geometric one ...
 PROFILE_POINTS = 21     # ... of this many points each
 
@@ -616,10 +640,8 @@ def _fit_fouling(t_days, y, se=None, *, law: str = "auto", floor: float = 0.0, o
         if k_p <= 0 or r_p <= 0:
             raise ForecastError("the Kern–Seaton law with the prior cannot be fitted to these data")
         J = np.stack([sw, sw * phi(t, k_p), sw * r_p * dphi_dk(t, k_p)], axis=1)
-        g_inf = np.array([1.0, 1.0 / k_p, -r_p / k_p ** 2])
-        info_prior = np.outer(g_inf, g_inf) / prior.y_inf_sd ** 2
-        info_prior[2, 2] += 1.0 / prior.k_sd ** 2
-        cov_p, s2_p = cov_of(J, ssr_p, 3, info_prior)
+        s2_p = ssr_p / max(n - 3, 1)
+        cov_p = _prior_covariance(J, k_p, r_p, s2_p, overlap, prior)
         reason = (f"Kern–Seaton with the law of {prior.n_cycles} earlier cycle(s) as prior "
                   f"(tau {1 / prior.k:.3g} d, y_inf {prior.y_inf:.4g})")
         return FoulingFit("kern_seaton", float(floor), a_p, r_p, k_p, cov_p, s2_p, se_typ, n,

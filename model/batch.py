@@ -33,7 +33,7 @@ SOLVED_WITH_FLAG = ("ls_speed_high", "ls_speed_low", "negative_pinch")
 def floats(s: pd.Series) -> np.ndarray:
     """``pd.to_numeric(s, errors="coerce").to_numpy(dtype=float)`` (a new array): a float64 column
     as it is, without ``to_numeric``'s checks (~25 us a call, a dozen calls a window)."""
-    if s.dtype == np.float64:
+    if getattr(s, "dtype", None) == np.float64:     # (a duplicated label's frame: to_numeric's error)
         return s.to_numpy(dtype=float, copy=True)
     return pd.to_numeric(s, errors="coerce").to_numpy(dtype=float)
 
@@ -48,7 +48,7 @@ def numeric(df: pd.DataFrame, columns) -> pd.DataFrame:
     if not len(df):
         return df[columns].apply(pd.to_numeric, errors="coerce")
     cols = [df[c] for c in columns]
-    if all(s.dtype == np.float64 for s in cols) and len(set(columns)) == len(columns):
+    if all(getattr(s, "dtype", None) == np.float64 for s in cols) and len(set(columns)) == len(columns):
         block = np.empty((len(columns), len(df)))
         for i, s in enumerate(cols):
             block[i] = s.to_numpy()

@@ -331,3 +331,51 @@ def test_the_refit_for_correlated_residuals_reuses_the_fits_to_the_bit():
         assert (fit.law, fit.reason, fit.a0, fit.r0, fit.k, fit.s2, fit.dof) == \
             (ref.law, ref.reason, ref.a0, ref.r0, ref.k, ref.s2, ref.dof)
         np.testing.assert_array_equal(fit.cov, ref.cov)
+
+
+def test_numeric_and_floats_are_to_numeric_to_the_bit():
+    """``batch.numeric`` (one block when every column is float64) and ``batch.floats`` give what
+    ``pd.to_numeric(errors="coerce")`` gives: the same frame (dtypes, index, layout of the block)
+    or array, a new one; other dtypes and a duplicated label take to_numeric's own path."""
+    from model.batch import floats, numeric
+    rng = np.random.default_rng(2)
+    df = pd.DataFrame({c: rng.normal(size=9) for c in INPUT_COLUMNS}, index=pd.RangeIndex(3, 12))
+    df["T_sink_in"] = np.nan
+    cols = list(INPUT_COLUMNS)
+    ref = df[cols].apply(pd.to_numeric, errors="coerce")
+    got = numeric(df, cols)
+    pd.testing.assert_frame_equal(got, ref, check_exact=True)
+    assert got._mgr.nblocks == 1 and np.shares_memory(got.to_numpy(), got._mgr.blocks[0].values.T)
+    mixed = df.assign(V_sink=["1.5", "x", 3, 4, 5, 6, 7, 8, 9], p_m_sp=np.arange(9))
+    pd.testing.assert_frame_equal(numeric(mixed, cols), mixed[cols].apply(pd.to_numeric, errors="coerce"),
+                                  check_exact=True)
+    for c in ("V_source", "V_sink", "p_m_sp"):
+        a = floats(mixed[c])
+        np.testing.assert_array_equal(a, pd.to_numeric(mixed[c], errors="coerce").to_numpy(dtype=float))
+        assert a.dtype == np.float64 and not np.shares_memory(a, mixed[c].to_numpy())
+    dup = pd.concat([df[["V_source"]], df[["V_source"]]], axis=1)
+    with pytest.raises(TypeError, match="arg must be a list, tuple, 1-d array, or Series"):
+        floats(dup["V_source"])
+
+
+def test_a_merged_results_parts_are_its_rows(learned, plant):
+    """``vcycle.split_rows`` (a merged call's parts as copied slices) is ``take_rows`` of each
+    part's positions: every field and state array equal, new arrays."""
+    from model.vcycle import split_rows
+    _, _, ev, _ = learned
+    whole = solve_many(ev._input_columns().take(np.tile(np.arange(len(ev.rows)), 3)), plant,
+                       p_m_sp=np.repeat([14.0, 15.0, 16.5], len(ev.rows)))
+    n = len(ev.rows)
+    starts, ends = np.array([0, n, 2 * n - 3]), np.array([n, 2 * n - 3, 3 * n])
+    for part, a, b in zip(split_rows(whole, starts, ends), starts, ends):
+        ref = take_rows(whole, np.arange(a, b))
+        for f in ("status", "reason", "branch", "fallback", "warm", "cold"):
+            np.testing.assert_array_equal(getattr(part, f), getattr(ref, f))
+        for d in ("values", "state"):
+            x, y = getattr(part, d), getattr(ref, d)
+            assert list(x) == list(y)
+            for k in x:
+                np.testing.assert_array_equal(x[k], y[k])
+                if isinstance(x[k], np.ndarray) and x[k].ndim:
+                    assert not np.shares_memory(x[k], getattr(whole, d)[k])
+        assert part.timings == ref.timings

@@ -11,6 +11,8 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from edge.cli import main
 from edge.io.history import HistoryError, read_history, read_history_csv
@@ -244,3 +246,78 @@ def test_a_header_only_file_and_header_errors_after_the_rows(tmp_path):
     p.write_text('timestamp,a,a\n2024-03-01T00:00Z,' + 'x' * 200_000 + ',1\n')    # beyond csv's field limit
     with pytest.raises(HistoryError, match="cannot read as CSV"):
         read_history(p, required=())
+
+
+def _cell_oracle(cells, decimal="."):
+    """What a column of cells reads as, cell by cell from the module docstring's rules: the text
+    without surrounding whitespace as Python's float reads it; no number (NaN) with digits other
+    than ASCII, '_', or (decimal comma) a point; integers (int64) when every cell is one."""
+    vals, wrong = [], []
+    for c in cells:
+        t = c.strip()
+        v = float("nan")
+        if t.isascii() and "_" not in t and not (decimal == "," and "." in t):
+            try:
+                v = float(t.replace(",", ".") if decimal == "," else t)
+            except ValueError:
+                pass
+        vals.append(v)
+        wrong.append(v != v and t.lower() not in ("", "nan", "na", "n/a", "null", "none"))
+    import re
+    if all(re.fullmatch(r"\s*[+-]?[0-9]+\s*", c) and c.isascii() for c in cells):   # none: too
+        ints = [int(c.strip()) for c in cells]
+        for dtype, lo, hi in ((np.int64, -2**63, 2**63), (np.uint64, 0, 2**64)):   # as pandas
+            if all(lo <= i < hi for i in ints):
+                return np.array(ints, dtype=dtype), np.array(wrong, dtype=bool)
+    return np.array(vals, dtype=float), np.array(wrong, dtype=bool)
+
+
+def test_cells_are_read_as_python_reads_a_number(tmp_path):
+    """A cell is read correctly rounded (pandas' own parser is not: 59.378800835e-65 read as
+    5.9378800835000006e-64), '1_0' and non-ASCII digits are not numbers, surrounding whitespace
+    (also the separators below ASCII space) is not part of a cell, 'NULL' is a missing value and
+    not counted, a column of integers stays integer."""
+    p = tmp_path / "cells.csv"
+    a = ["59.378800835e-65", "749410988.31818085921323796459658616836269987", " 3.25 ", "1.5\x1f",
+         "1_0", "\u0661\u0662", "NULL", "+nan", "-0", "inf"]
+    p.write_text("timestamp,a,n\n" + "".join(
+        f"2024-03-01T00:{i:02d}:00Z,{c},{i - 3}\n" for i, c in enumerate(a)))
+    h = read_history(p, required=())
+    got = h.frame["a"].to_numpy()
+    assert got[0] == 5.9378800835e-64 and got[1] == 749410988.3181809
+    assert got[2] == 3.25 and got[3] == 1.5 and np.isnan(got[4:8]).all()
+    assert got[8] == 0.0 and np.signbit(got[8]) and got[9] == np.inf
+    assert h.non_numeric == {"a": 3}            # '1_0', the Arabic-Indic 12 and '+nan'; not NULL
+    assert h.first_non_numeric == {"a": "line 6: '1_0'"}
+    assert h.frame["n"].dtype == np.int64 and h.frame["n"].tolist() == list(range(-3, 7))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(
+    st.sampled_from(["1.5", "-2", "1e5", " 3.25 ", "", " ", "nan", "NaN", "n/a", "x", "1_0", "\u0661",
+                     "1,5", "1.2.3", "inf", "+nan", "1.5\x1f", "-0", ".5", "5.", "007", " +12 ",
+                     "9223372036854775808", "99999999999999999999", "1e400", "0.1e-310"]),
+    st.floats(allow_nan=False).map(repr), st.integers(-10**12, 10**12).map(str),
+    st.text(alphabet="0123456789.,eE+- \t", max_size=8)), max_size=12),
+    st.sampled_from([".", ","]))
+@example(["1_0", "2.5"], ".").via("an underscore in a column that otherwise reads at once")
+@example(["\u0661", "2"], ".").via("a non-ASCII digit")
+@example(["7", " +5 ", "-0"], ".").via("integers")
+@example(["7", "5\x1f"], ".").via("integers, one with a separator below ASCII space")
+@example(["1,5", "2"], ",").via("decimal comma")
+@example(["1.5", "2"], ",").via("a point where the decimal mark is a comma")
+def test_a_column_reads_as_its_cells_one_by_one(cells, decimal):
+    """Whether read in one conversion (every cell a number as it stands) or cell by cell (one that
+    is not forces it: a blank cell added), a column's numbers and wrong cells are the oracle's,
+    to the bit; its dtype too."""
+    from edge.io.history import _numbers
+    cells = tuple(cells)
+    for src in (cells, cells + (" ",)):
+        want, wrong = _cell_oracle(src, decimal)
+        num, nn = _numbers(src, decimal)
+        assert nn.tolist() == wrong.tolist()
+        if want.dtype != np.float64:
+            assert num.dtype == want.dtype and num.tolist() == want.tolist()
+        else:
+            assert num.dtype == np.float64
+            assert np.array_equal(num.view(np.int64), want.view(np.int64)), (src, num, want)

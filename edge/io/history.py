@@ -11,6 +11,7 @@ Non-numeric cells become missing values (counted per column, the first one named
 from __future__ import annotations
 
 import csv
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +23,7 @@ MAX_BYTES = 2_000_000_000       # larger files are refused rather than read into
 _MISSING_TEXT = ("", "nan", "na", "n/a", "null", "none")
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d+,\d+([eE][+-]?\d+)?$")
 _DECIMAL_POINT = re.compile(r"^[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?$")
+_INTEGER_CHARS = re.compile(r"[0-9+\-\s]*")
 
 
 class HistoryError(ValueError):
@@ -162,7 +164,7 @@ def read_history(path, sep: str | None = None, decimal: str | None = None,
         lines.clear()
     try:
         for row in reader:
-            if not any(c.strip() for c in row):
+            if not (row and row[0].strip()) and not "".join(row).strip():    # a blank line
                 continue
             if names is None:
                 names = [c.strip() for c in row]
@@ -269,35 +271,82 @@ def _convert_chunk(rows: list, lines: list, names: list[str], decimal: str):
     built from new columns: one sharing the strings' block would keep every cell's string."""
     import numpy as np
     import pandas as pd
-    raw = pd.DataFrame(rows, columns=names, dtype=str)
     line_of = np.asarray(lines, dtype=int)
-    text_ts = raw["timestamp"].str.strip()
+    text = dict(zip(names, zip(*rows))) if rows else {c: () for c in names}
+    text_ts = pd.Series(list(text["timestamp"]), dtype=str).str.strip()
     ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601").reset_index(drop=True)
     bad = ts.isna().to_numpy()
     first_bad = str(text_ts.iloc[int(bad.argmax())]) if bad.any() else None
     cols: dict = {}
     flags: dict = {}
     texts: dict = {}
-    for c in raw.columns:
+    for c in names:
         if c == "timestamp":
             cols[c] = ts
             continue
         if c == "quality":
-            cols[c] = raw[c].to_numpy().copy()
+            cols[c] = np.array(text[c], dtype=object)
             continue
-        cells = raw[c].str.strip()
-        if decimal == ",":   # a point is then no decimal mark (perhaps thousands): not a number
-            numeric_text = cells.where(~cells.str.contains(".", regex=False), "x")
-            numeric_text = numeric_text.str.replace(",", ".", regex=False)
-        else:
-            numeric_text = cells
-        num = pd.to_numeric(numeric_text, errors="coerce")
-        nn = (num.isna() & ~cells.str.lower().isin(_MISSING_TEXT)).to_numpy()
+        num, nn = _numbers(text[c], decimal)
         flags[c] = nn
         if nn.any():
-            texts[c] = dict(zip(line_of[nn].tolist(), cells.to_numpy()[nn].tolist()))
-        cols[c] = num.to_numpy()
+            texts[c] = {int(line_of[i]): text[c][i].strip() for i in np.flatnonzero(nn)}
+        cols[c] = num
     return pd.DataFrame(cols, columns=names), line_of, ts, flags, texts, first_bad
+
+
+def _numbers(cells: tuple, decimal: str):
+    """The cells' numbers (NaN where a cell is not one) and which cells are not numbers and not
+    a missing-value text (``_MISSING_TEXT``). A cell is its text without surrounding whitespace,
+    read as Python's ``float`` reads it (correctly rounded), except that digits other than ASCII
+    and ``_`` between digits make it no number; with a decimal comma a point does too (it would
+    be a thousands separator). Integers when every cell is one (as pandas reads a column: int64,
+    uint64 above its range, else floats). The whole column in one conversion when every cell is a
+    number as it stands (the common case: ~5x faster), else cell by cell."""
+    import numpy as np
+    n = len(cells)
+    if not n:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
+    joined = "".join(cells)
+    num = None
+    if joined.isascii() and "_" not in joined and "\x00" not in joined \
+            and not (decimal == "," and "." in joined):
+        try:
+            src = "\x00".join(cells).replace(",", ".").split("\x00") if decimal == "," else cells
+            num = np.array(src, dtype=np.float64)
+        except ValueError:
+            pass
+    if num is not None:
+        nn = np.zeros(n, dtype=bool)
+        for i in np.flatnonzero(np.isnan(num)):         # 'nan' and the like: missing, not wrong
+            nn[i] = cells[i].strip().lower() not in _MISSING_TEXT
+        integers = _INTEGER_CHARS.fullmatch(joined) is not None
+    else:
+        num = np.empty(n)
+        nn = np.zeros(n, dtype=bool)
+        integers = True
+        for i, cell in enumerate(cells):
+            t = cell.strip()
+            v = math.nan
+            if t.isascii() and "_" not in t and not (decimal == "," and "." in t):
+                try:
+                    v = float(t.replace(",", ".") if decimal == "," else t)
+                except ValueError:
+                    pass
+            num[i] = v
+            if v != v:
+                integers = False
+                if t.lower() not in _MISSING_TEXT:
+                    nn[i] = True
+            elif integers and _INTEGER_CHARS.fullmatch(t) is None:
+                integers = False
+    if integers:                   # digits, signs and spaces only, every cell a number
+        for dtype in (np.int64, np.uint64):
+            try:
+                return np.array([c.strip() for c in cells], dtype=dtype), nn
+            except (ValueError, OverflowError):
+                pass
+    return num, nn
 
 
 def read_history_csv(path, sep: str | None = None, decimal: str | None = None):

@@ -24,7 +24,7 @@ def write_replay_dir(res, out: str | os.PathLike, meta: dict | None = None,
         if frame is None:
             continue
         tmp = out / f".{name}.tmp"
-        frame.to_csv(tmp, index=False, float_format="%.10g")
+        frame_to_csv(frame, tmp)
         os.replace(tmp, out / name)
     write_state("meta.json", {**res.meta, **(meta or {})}, out)
     if res.compressors is not None:
@@ -38,3 +38,16 @@ def write_replay_dir(res, out: str | os.PathLike, meta: dict | None = None,
     write_state(INITIAL_CALIBRATION, res.initial.to_dict(), out)
     write_state(DP_CLEAN, res.dp_clean.to_dict(), out)
     return text
+
+
+def frame_to_csv(frame, path, float_format: str = "%.10g") -> None:
+    """``frame.to_csv(path, index=False, float_format=float_format)`` to the byte, with the float
+    columns formatted here: pandas formats each value through three Python calls, ~1.5 us, and a
+    plant-year's samples.csv holds ~7 million of them (a missing value is an empty field, as
+    pandas writes it)."""
+    out = frame.copy(deep=False)
+    for i in range(frame.shape[1]):
+        col = frame.iloc[:, i]
+        if col.dtype.kind == "f":
+            out.isetitem(i, [float_format % v if v == v else "" for v in col.tolist()])
+    out.to_csv(path, index=False)

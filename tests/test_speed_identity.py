@@ -379,3 +379,33 @@ def test_a_merged_results_parts_are_its_rows(learned, plant):
                 if isinstance(x[k], np.ndarray) and x[k].ndim:
                     assert not np.shares_memory(x[k], getattr(whole, d)[k])
         assert part.timings == ref.timings
+
+
+def test_a_replay_files_csv_is_pandas_to_csv_to_the_byte(tmp_path):
+    """``replaydir.frame_to_csv`` formats the float columns itself; the file is what
+    ``to_csv(index=False, float_format="%.10g")`` writes, byte for byte, for every kind of column a
+    replay's tables hold and the awkward values: NaN, infinities, -0.0, float32, 17 digits, text
+    that needs quoting, missing text, booleans, integers, times with a zone, a repeated name."""
+    from edge.replaydir import frame_to_csv
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal(200) * 10.0 ** rng.integers(-12, 12, 200)
+    x[[3, 17]] = np.nan
+    x[[5, 6, 7]] = [np.inf, -np.inf, -0.0]
+    frame = pd.DataFrame({
+        "t": pd.date_range("2024-03-01", periods=200, freq="min", tz="UTC"),
+        "x": x, "y": x.astype(np.float32), "z": 1.0 / 3.0 + np.arange(200),
+        "note": [None if i % 7 == 0 else ('a, "b"\nc' if i % 5 == 0 else f"ok {i}") for i in range(200)],
+        "ok": np.arange(200) % 3 == 0, "n": np.arange(200) - 100})
+    frame.insert(3, "x2", x[::-1])
+    frame.columns = [*frame.columns[:3], "x", *frame.columns[4:]]      # "x" twice
+    for f in (frame, frame.iloc[:0], frame.iloc[:, [0, 3]]):
+        frame_to_csv(f, tmp_path / "fast.csv")
+        f.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
+        assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()
+        if f is frame:      # the awkward values are there
+            rows = (tmp_path / "fast.csv").read_text().split("\n")
+            assert rows[0] == "t,x,y,x,z,note,ok,n"
+            assert rows[4].split(",")[1:3] == ["", ""] and rows[6].split(",")[1:3] == ["inf", "inf"]
+            assert rows[8].split(",")[1:3] == ["-inf", "-inf"] and rows[9].split(",")[1:3] == ["-0", "-0"]
+            assert rows[1].split(",")[4] == "0.3333333333"
+            assert '"a, ""b""' in rows[6] and rows[7] == 'c",False,-95'

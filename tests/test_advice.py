@@ -114,6 +114,25 @@ def test_low_confidence_when_the_operating_point_leaves_the_learned_region(plant
     assert leave.dCOP_opt_pct == 0.0 and leave.dQ_sink_opt_pct == 0.0
     vals = leave.advisory_values()
     assert vals["p_m_sp_rec"] == pytest.approx(10.0, abs=0.01) and vals["dCOP_pct"] == 0.0
+    # a window that cannot be confident does not evaluate the previous recommendation: whatever
+    # it is, the advice is the same, its uncertainty the model optimum's, and nothing is solved
+    from model.analysis import advice as advice_mod
+    m = usable & (ts >= day0 + pd.Timedelta(hours=14.5)).to_numpy() & (ts < day0 + pd.Timedelta(hours=16.5)).to_numpy()
+    partial = chain.analyse(chain.prepare(hist.loc[m].assign(timestamp=ts[m]), state))
+    d = partial.draft
+    assert d.reasons                               # outside the learned region: not confident
+    solved = []
+    real = advice_mod.Evaluator
+    advice_mod.Evaluator = lambda *a, **k: solved.append(1) or real(*a, **k)
+    try:
+        got = [advice_mod.settle_advice(d, prev) for prev in (None, d.sp_opt, d.actual, 0.5 * (d.lo + d.hi))]
+    finally:
+        advice_mod.Evaluator = real
+    assert not solved
+    for a in got:
+        assert repr(a) == repr(got[0])
+        assert not a.confident and a.p_m_sp_rec_barg == d.actual and a.dCOP_sd_pct == d.sd_opt
+        assert a.evaluations == d.evaluations
 
 
 def test_the_gateway_and_replay_give_identical_window_results(plant, tmp_path):

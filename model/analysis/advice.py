@@ -589,8 +589,16 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     """The advice from its draft and the previous confident recommendation: the dead band (keep the
     previous recommendation unless the optimum gains more than ``dead_band_pct`` of COP over it in
     this window's conditions), the expected changes at the recommendation and the confidence.
-    Model runs happen here only when the dead band keeps the previous recommendation."""
+    Model runs happen here only when the dead band keeps the previous recommendation, and never in
+    a window whose draft gave reasons for low confidence (its recommendation is the actual set
+    point, its uncertainty the model optimum's)."""
     d, s = draft, draft.settings
+    if d.reasons:
+        # the window cannot be confident: its recommendation is the actual set point whatever the
+        # dead band would keep, so the previous recommendation is not evaluated (its held value
+        # would only have replaced the model optimum's uncertainty by its own, or failed the window
+        # where it does not solve every sample)
+        previous_rec_barg = None
     sp_opt, lo, hi, amb = d.sp_opt, d.lo, d.hi, d.amb
     sp_rec, note, held = sp_opt, "", False
     evaluations = d.evaluations

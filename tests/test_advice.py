@@ -133,6 +133,15 @@ def test_low_confidence_when_the_operating_point_leaves_the_learned_region(plant
         assert repr(a) == repr(got[0])
         assert not a.confident and a.p_m_sp_rec_barg == d.actual and a.dCOP_sd_pct == d.sd_opt
         assert a.evaluations == d.evaluations
+    # the window's advice detail (the gateway's advice table) is asdict's, by value, also with a
+    # trusted stretch (a dataclass holding tuples)
+    import dataclasses
+    from model.analysis.chain import _plain
+    mb = usable & (ts >= day0 + pd.Timedelta(hours=10)).to_numpy() & (ts < day0 + pd.Timedelta(hours=12)).to_numpy()
+    ab = advice_mod.settle_advice(chain.analyse(chain.prepare(hist.loc[mb].assign(timestamp=ts[mb]), state)).draft)
+    assert ab.trusted is not None and len(ab.trusted.path) > 3
+    for a in (got[0], ab):
+        assert repr(_plain(a)) == repr(dataclasses.asdict(a))
 
 
 def test_the_gateway_and_replay_give_identical_window_results(plant, tmp_path):

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, is_dataclass
 
 import numpy as np
 import pandas as pd
@@ -836,7 +836,7 @@ def _plain(obj):
         v = getattr(obj, f.name)
         if isinstance(v, dict):
             v = dict(v)
-        elif hasattr(type(v), "__dataclass_fields__"):
+        elif is_dataclass(v):
             v = _plain(v)
         out[f.name] = v
     return out

@@ -153,7 +153,8 @@ def simulate_batch(df: pd.DataFrame, params: PlantParams, p_m_sp=None,
 
 def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, columns: tuple[str, ...] = OUTPUT_KEYS,
                   ls_mode: str = "flag", R_th_f=None, cond_factor=None, seed=None,
-                  seed_rows: "pd.DataFrame | InputColumns | None" = None, with_result: bool = False):
+                  seed_rows: "pd.DataFrame | InputColumns | None" = None, with_result: bool = False,
+                  as_columns: bool = False):
     """``simulate_batch`` with per-row evaporator fouling ``R_th_f`` [K/W] and condenser-unit
     factors ``cond_factor`` (scalars or arrays; each row answered as with
     ``params.replace(R_th_f=...)`` and ``model.analysis.chain.scale_condenser(params, k)``), in one
@@ -162,7 +163,9 @@ def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, column
     in the same order). ``with_result``: return (frame, VResult) (VResult None on the scalar
     path). With VECTORISED off: the scalar rows, one ``simulate_batch`` per distinct value. ``df``
     may be ``InputColumns`` (rows read again and again, e.g. a secant's): the frame then has a
-    RangeIndex."""
+    RangeIndex. ``as_columns``: the frame's columns as a dict of arrays (``columns`` as floats, then
+    status and reason), not the frame (the same numbers; no DataFrame where a caller reads a few
+    columns, e.g. a secant's trials)."""
     n = len(df)
     if isinstance(df, InputColumns) and not VECTORISED:
         df = pd.DataFrame(df.cols)
@@ -178,6 +181,9 @@ def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, column
             seed = None
         vres = solve_many(df, params, ls_mode=ls_mode, R_th_f=R, cond_factor=K, guess=seed,
                           guess_index=gidx)
+        if as_columns:
+            cols = vres.columns(columns)
+            return (cols, vres) if with_result else cols
         frame = vres.frame(columns, df.index if isinstance(df, pd.DataFrame) else None)
         return (frame, vres) if with_result else frame
     keys = list(zip(R if R is not None else [None] * n, K if K is not None else [None] * n))
@@ -198,6 +204,9 @@ def simulate_many(df: "pd.DataFrame | InputColumns", params: PlantParams, column
     else:
         frame = pd.concat(parts, ignore_index=True).iloc[np.argsort(np.concatenate(order), kind="stable")]
         frame.index = df.index
+    if as_columns:
+        frame = {c: (frame[c].to_numpy() if c in ("status", "reason") else frame[c].to_numpy(dtype=float))
+                 for c in (*columns, "status", "reason")}
     return (frame, None) if with_result else frame
 
 
@@ -264,9 +273,11 @@ def frame_of(rows: list[Row], params: PlantParams, columns: tuple[str, ...] = OU
     return frame
 
 
-def solved_mask(frame: pd.DataFrame, allow_flagged: bool = True) -> np.ndarray:
-    """Rows with outputs: 'ok', plus speed/pinch-flagged rows when allow_flagged."""
-    ok = frame["status"].to_numpy() == "ok"
+def solved_mask(frame: "pd.DataFrame | dict", allow_flagged: bool = True) -> np.ndarray:
+    """Rows with outputs: 'ok', plus speed/pinch-flagged rows when allow_flagged (``frame``: a
+    DataFrame or ``simulate_many``'s columns)."""
+    status = np.asarray(frame["status"])
+    ok = status == "ok"
     if allow_flagged:
-        ok |= among(frame["status"].to_numpy(), SOLVED_WITH_FLAG)
+        ok |= among(status, SOLVED_WITH_FLAG)
     return ok

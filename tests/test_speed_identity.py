@@ -288,6 +288,34 @@ def test_simulate_many_answers_input_columns_as_their_dataframe(learned, plant, 
     assert list(f.index) == [0, 1, 2] and f["status"].tolist() == e["status"].tolist()
 
 
+def test_simulate_many_as_columns_is_its_frame_as_arrays(learned, plant, monkeypatch):
+    """The condenser factor's trials and the window's model figures read ``simulate_many``'s
+    answer as arrays (``as_columns``): every asked column of the frame as floats (NaN where a row
+    is not solved), status and reason, the same numbers, on the vectorised and the scalar path."""
+    import model.batch as batch
+    from model.batch import simulate_many, solved_mask
+    data, *_ = learned
+    rows = data[list(INPUT_COLUMNS)].iloc[::9].reset_index(drop=True)
+    rows.loc[2, "T_source_out"] = rows.loc[2, "T_source_in"] + 1.0      # a row the model refuses
+    R = np.linspace(0.0, 2e-6, len(rows))
+    cols = ("p_c_bar", "COP", "Q_sink_kW")
+    for vec in (True, False):
+        monkeypatch.setattr(batch, "VECTORISED", vec)
+        part = rows if vec else rows.iloc[:4]
+        f, vf = simulate_many(part, plant, columns=cols, R_th_f=R[:len(part)], with_result=True)
+        c, vc = simulate_many(InputColumns.of(part), plant, columns=cols, R_th_f=R[:len(part)],
+                              with_result=True, as_columns=True)
+        assert list(c) == [*cols, "status", "reason"]
+        for k in cols:
+            assert c[k].dtype == np.float64
+            np.testing.assert_array_equal(c[k], f[k].to_numpy(dtype=float))
+        assert c["status"].tolist() == f["status"].tolist()
+        assert c["reason"].tolist() == f["reason"].tolist()
+        np.testing.assert_array_equal(solved_mask(c), solved_mask(f))
+        assert not solved_mask(c)[2] and solved_mask(c).sum() == len(part) - 1
+        assert (vc is None) == (vf is None) == (not vec)
+
+
 def test_a_learner_snapshot_is_its_pickled_copy_and_later_updates_leave_it(learned, plant):
     """A replay's in-process window task takes a snapshot of the learner instead of a pickled copy:
     the same state to the bit (every statistic, bin, coverage weight, drive sum, the local curves),

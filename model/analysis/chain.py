@@ -322,11 +322,11 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
 
     def err(x: float) -> float:
         f, v = simulate_many(rows_in, params, columns=("p_c_bar",), cond_factor=math.exp(x),
-                             seed=last[0], with_result=True)
+                             seed=last[0], with_result=True, as_columns=True)
         if not solved_mask(f).all():
             return math.nan
         last[0] = v
-        return float(np.sum(w * f["p_c_bar"].to_numpy(dtype=float)) / w.sum()) - target
+        return float(np.sum(w * f["p_c_bar"]) / w.sum()) - target
 
     def found(k: float) -> float:
         if solution is not None and last[0] is not None:
@@ -781,28 +781,33 @@ class AnalysisChain:
         cols = ("Q_sink_kW", "W_total_kW", "COP", "p_e_bar")
         n = len(der)
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
-        sub = der.iloc[keep]
         # the fixed model is the adaptive one without fouling (R_th,f 0; CF_dp,f does not enter the
-        # cycle): both in one call, the fixed rows per-row R_th,f 0 (the rows as input columns:
-        # the numbers a DataFrame of them gives, without building it; the index is set below)
-        m = len(sub)
-        both_in = InputColumns({c: np.concatenate([a, a]) for c, a in InputColumns.of(sub).cols.items()})
+        # cycle): both in one call, the fixed rows per-row R_th,f 0 (the rows as input columns and
+        # the results as arrays: the numbers DataFrames of them give, without building them)
+        m = len(keep)
+        both_in = InputColumns({c: np.concatenate([a, a]) for c, a in
+                                ((c, der[c].to_numpy(dtype=float)[keep]) for c in INPUT_COLUMNS
+                                 if c in der.columns)})
         sim = simulate_many(both_in, adaptive, columns=cols,
                             R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)],
-                            seed=seed[0] if seed else None, seed_rows=seed[1] if seed else None)
-        sim_f, sim_a = sim.iloc[:m].copy(), sim.iloc[m:].copy()
+                            seed=seed[0] if seed else None, seed_rows=seed[1] if seed else None,
+                            as_columns=True)
+        sim_f = {c: sim[c][:m] for c in (*cols, "status")}
+        sim_a = {c: sim[c][m:] for c in (*cols, "status")}
         both = solved_mask(sim_f) & solved_mask(sim_a)
-        meas_cop = sub["COP"].to_numpy(dtype=float)[both]
-        meas_q = sub["Q_sink_kW"].to_numpy(dtype=float)[both]
-        res.nrmse_COP_fixed = _nrmse(sim_f["COP"].to_numpy(dtype=float)[both], meas_cop)
-        res.nrmse_COP_adaptive = _nrmse(sim_a["COP"].to_numpy(dtype=float)[both], meas_cop)
-        res.nrmse_Q_sink_fixed = _nrmse(sim_f["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
-        res.nrmse_Q_sink_adaptive = _nrmse(sim_a["Q_sink_kW"].to_numpy(dtype=float)[both], meas_q)
+        meas_cop = der["COP"].to_numpy(dtype=float)[keep][both]
+        meas_q = der["Q_sink_kW"].to_numpy(dtype=float)[keep][both]
+        res.nrmse_COP_fixed = _nrmse(sim_f["COP"][both], meas_cop)
+        res.nrmse_COP_adaptive = _nrmse(sim_a["COP"][both], meas_cop)
+        res.nrmse_Q_sink_fixed = _nrmse(sim_f["Q_sink_kW"][both], meas_q)
+        res.nrmse_Q_sink_adaptive = _nrmse(sim_a["Q_sink_kW"][both], meas_q)
         res.COP_measured = _ratio(der["Q_sink_kW"], der["W_total_kW"])
-        sim_f.index = sim_a.index = der.index[keep]
         res.COP_fixed = _ratio(sim_f["Q_sink_kW"][both], sim_f["W_total_kW"][both])
         res.COP_adaptive = _ratio(sim_a["Q_sink_kW"][both], sim_a["W_total_kW"][both])
-        res.detail["model_series"] = {"fixed": sim_f, "adaptive": sim_a}
+        # the per-sample series (replay's samples.csv): the rows' positions in the window and
+        # their columns
+        res.detail["model_series"] = {"at": der.index.to_numpy()[keep].astype(int),
+                                      "fixed": sim_f, "adaptive": sim_a}
 
     @staticmethod
     def _advice_figures(res: WindowResult, adv: AdviceResult) -> None:
@@ -852,13 +857,13 @@ def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
     cols: dict = {"timestamp": ts, "window_start": res.window_start}
     series = res.detail.get("model_series")
     if series is not None:
+        at = series["at"]
         for kind in ("fixed", "adaptive"):
             f = series[kind]
-            at = f.index.to_numpy(dtype=int)
             for col, name in (("COP", f"COP_{kind}"), ("Q_sink_kW", f"Q_sink_kW_{kind}"),
                               ("p_e_bar", f"p_e_bar_{kind}")):
                 v = np.full(len(ts), np.nan)
-                v[at] = f[col].to_numpy(dtype=float)
+                v[at] = f[col]
                 cols[name] = v
     learner = task.learner
     if learner is not None:

@@ -668,12 +668,28 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     return sp_opt, p
 
 
-def window_range(ref: pd.DataFrame, ambient_bar: float,
+def column_max(values) -> float:
+    """The largest value that is not NaN (NaN when there is none): ``pd.Series.max``'s, of a
+    column or an array."""
+    a = np.asarray(values, dtype=float)
+    a = a[~np.isnan(a)]
+    return float(a.max()) if len(a) else math.nan
+
+
+def column_min(values) -> float:
+    """The smallest value that is not NaN (NaN when there is none), as ``column_max``."""
+    a = np.asarray(values, dtype=float)
+    a = a[~np.isnan(a)]
+    return float(a.min()) if len(a) else math.nan
+
+
+def window_range(ref, ambient_bar: float,
                  bounds_barg: tuple[float, float] | None = None) -> tuple[float, float]:
     """[highest p_e, lowest p_c] of the window at its actual set points, as set points [bar(g)]
-    with BOUND_MARGIN; intersected with ``bounds_barg``."""
-    lo = float(ref["p_e_bar"].max()) - ambient_bar + BOUND_MARGIN
-    hi = float(ref["p_c_bar"].min()) - ambient_bar - BOUND_MARGIN
+    with BOUND_MARGIN; intersected with ``bounds_barg``. ``ref``: the rows' model outputs (a
+    DataFrame, or a mapping of the two columns as arrays); rows not solved (NaN) left out."""
+    lo = column_max(ref["p_e_bar"]) - ambient_bar + BOUND_MARGIN
+    hi = column_min(ref["p_c_bar"]) - ambient_bar - BOUND_MARGIN
     if bounds_barg is not None:
         lo, hi = max(lo, bounds_barg[0]), min(hi, bounds_barg[1])
     if not hi > lo:

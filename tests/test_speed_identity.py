@@ -316,6 +316,49 @@ def test_simulate_many_as_columns_is_its_frame_as_arrays(learned, plant, monkeyp
         assert (vc is None) == (vf is None) == (not vec)
 
 
+def test_the_windows_sample_columns_make_the_frame_pd_concat_makes():
+    """Replay puts the windows' sample columns (``chain._window_samples``: arrays, one text) into
+    one frame: the frame ``pd.concat`` of a frame per window gave, to the bit, dtypes and column
+    order included (a window without the model series: NaN there)."""
+    from model.analysis.replay import frame_of_parts
+    rng = np.random.default_rng(3)
+    t0 = pd.Timestamp("2026-01-01T00:00:00Z")
+    parts = []
+    for i, n in enumerate((5, 3, 4)):
+        ts = pd.DatetimeIndex([t0 + pd.Timedelta(minutes=10 * i + k) for k in range(n)])
+        p = {"timestamp": pd.Series(ts).to_numpy(), "window_start": ts[0].isoformat()}
+        if i != 1:
+            p["COP_fixed"] = rng.normal(4.0, 0.1, n)
+            p["COP_fixed"][0] = np.nan
+        p["eta_is_LS_model"] = rng.normal(0.7, 0.01, n)
+        parts.append(p)
+    expected = pd.concat([pd.DataFrame(p, index=pd.RangeIndex(len(p["timestamp"]))) for p in parts],
+                         ignore_index=True)
+    got = frame_of_parts(parts)
+    pd.testing.assert_frame_equal(got, expected, check_exact=True)
+    assert list(got.columns) == ["timestamp", "window_start", "COP_fixed", "eta_is_LS_model"]
+    assert got["COP_fixed"].isna().tolist() == [True] + [False] * 4 + [True] * 3 + [True, False, False, False]
+
+
+def test_the_advice_given_its_check_rows_is_the_advice_computing_them(learned, plant):
+    """The chain computes a window's check rows and representative points once (``check_rows``)
+    for the surrogate tracker and the advice: the draft is the one the advice computes alone."""
+    from model.analysis.advice import check_rows, draft_advice
+    data, learner, _, _ = learned
+    adaptive = learner.apply(plant)
+    s = AdviceSettings()
+    c = check_rows(data, s)
+    assert len(c.data) == s.check_rows and len(c.rows) == s.representative_points
+    assert c.actual == float(pd.to_numeric(data["p_m_sp"]).mean())
+    a = draft_advice(data, adaptive, learner, s)
+    b = draft_advice(data, adaptive, learner, s, checked=c)
+    for k in ("actual", "lo", "hi", "sp_opt", "COP_opt_rep", "score_opt_rep", "sd_opt", "gm", "dcop_step",
+              "reasons", "hs_saturated_opt"):
+        assert getattr(a, k) == getattr(b, k) or (getattr(a, k) != getattr(a, k) and getattr(b, k) != getattr(b, k)), k
+    pd.testing.assert_frame_equal(a.rows, b.rows, check_exact=True)
+    assert repr(a.trusted) == repr(b.trusted) and np.array_equal(a.w, b.w)     # (the path holds NaN)
+
+
 def test_a_learner_snapshot_is_its_pickled_copy_and_later_updates_leave_it(learned, plant):
     """A replay's in-process window task takes a snapshot of the learner instead of a pickled copy:
     the same state to the bit (every statistic, bin, coverage weight, drive sum, the local curves),

@@ -43,7 +43,7 @@ import pandas as pd
 from .. import batch
 from ..batch import INPUT_COLUMNS, among, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
-                        representative, search, window_range)
+                        representative, search, window_range, column_max, column_min)
 from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner
 
@@ -447,34 +447,57 @@ def _draws_at(rows: pd.DataFrame, w: np.ndarray, adaptive: PlantParams, learner:
     return draw_points(rows, w, base, sps, [R for _, R in specs], deltas, guess_from=guess_from)
 
 
+@dataclass(frozen=True)
+class CheckRows:
+    """What the advice evaluates of a window (``check_rows``): the actual set point (the mean over
+    all its samples, as windows.csv reports it; a window in which the set point changed must not
+    get a third value from the check rows), the positions ``keep`` of the evenly spaced samples of
+    the whole-window check (all of them when check_rows >= the window's samples), those samples'
+    inputs ``data``, their groups ``parts`` and the representative points ``rows`` with weights
+    ``w``."""
+    actual: float
+    keep: np.ndarray
+    data: pd.DataFrame
+    parts: list
+    rows: pd.DataFrame
+    w: np.ndarray
+
+
+def check_rows(data: pd.DataFrame, settings: AdviceSettings) -> CheckRows:
+    """The window's ``CheckRows`` (the chain computes them once for the surrogate tracker and the
+    advice)."""
+    s = settings
+    data = numeric(data, INPUT_COLUMNS).reset_index(drop=True)
+    actual = float(data["p_m_sp"].mean())
+    keep = np.unique(np.linspace(0, len(data) - 1, min(int(s.check_rows), len(data))).round().astype(int))
+    data = data.iloc[keep].reset_index(drop=True)
+    parts = groups(data, s.representative_points)
+    rows, w = representative(data, s.representative_points, parts)
+    return CheckRows(actual, keep, data, parts, rows, w)
+
+
 def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorLearner | None,
                  settings: AdviceSettings, coverage_share: float = 1.0,
                  curve_residual: dict | None = None, R_th_f_se_K_per_kW: float = 0.0,
                  measured: dict | None = None, sp_override: float | None = None,
-                 seed: tuple | None = None) -> AdviceDraft:
+                 seed: tuple | None = None, checked: CheckRows | None = None) -> AdviceDraft:
     """The model optimum of the window and everything about it (see ``advise``) except the dead
     band against the previous recommendation, which ``settle_advice`` applies. ``seed``: (VResult,
     rows) of nearby solutions at the rows' own set points (the chain's condenser factor's) to start
-    the representative points from."""
+    the representative points from. ``checked``: ``check_rows(data, settings)`` when the caller has
+    them."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
-    data = numeric(data, INPUT_COLUMNS).reset_index(drop=True)
-    # the window's actual set point: the mean over all its samples (as windows.csv reports it; a
-    # window in which the set point changed must not get a third value from the check rows)
-    actual = float(data["p_m_sp"].mean())
-    # the whole-window check on evenly spaced samples (all of them when check_rows >= len)
-    keep = np.unique(np.linspace(0, len(data) - 1, min(int(s.check_rows), len(data))).round().astype(int))
-    data = data.iloc[keep].reset_index(drop=True)
+    c = checked if checked is not None else check_rows(data, s)
+    actual, keep, data, parts, rows, w = c.actual, c.keep, c.data, c.parts, c.rows, c.w
     if measured is not None:
         measured = {k: np.asarray(v, dtype=float)[keep] for k, v in measured.items()}
     # the representative points first: the window's samples start from them (vectorised solver)
-    parts = groups(data, s.representative_points)
-    rows, w = representative(data, s.representative_points, parts)
     ev = Evaluator(rows, w, adaptive, seed=seed)
     ev.at(None)
     full = Evaluator(data, np.ones(len(data)), adaptive, guess_from=ev)
     ref = full.at(None)
-    ok = np.isin(ref.frame["status"].to_numpy(), SOLVED)
+    ok = np.isin(ref.col("status"), SOLVED)
     if not ok.any():
         raise OptimizationError("the model solves none of the window's samples at their actual set points")
     if not ok.all():
@@ -487,12 +510,13 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
         ev.at(None)
         full = Evaluator(data, np.ones(len(data)), adaptive, guess_from=ev)
         ref = full.at(None)
-    lo, hi = window_range(ref.frame, amb)
+    ref_p = {c: ref.col(c) for c in ("p_e_bar", "p_c_bar")}    # (the point's columns: no frame)
+    lo, hi = window_range(ref_p, amb)
     # the search range: pressure ratios of both stages at least PI_MIN (below that a stage does
     # almost nothing and the other all of the lift: never the optimum, and where the model's
     # trial points fail slowly)
-    lo = max(lo, PI_MIN * float(ref.frame["p_e_bar"].max()) - amb)
-    hi = min(hi, float(ref.frame["p_c_bar"].min()) / PI_MIN - amb)
+    lo = max(lo, PI_MIN * column_max(ref_p["p_e_bar"]) - amb)
+    hi = min(hi, column_min(ref_p["p_c_bar"]) / PI_MIN - amb)
     if not hi > lo:
         raise OptimizationError(f"empty set-point range [{lo:.2f}, {hi:.2f}] bar(g)")
     # the model's offset from the measured compressor operating points at the actual set point
@@ -520,8 +544,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                 sp_opt = p_m - amb
     if sp_opt is None:
         sp_opt, p_opt = search(ev, lo, hi, feasible=feasible, score=score)
-    p_e = ref.frame["p_e_bar"].to_numpy(dtype=float)
-    p_c = ref.frame["p_c_bar"].to_numpy(dtype=float)
+    p_e, p_c = ref_p["p_e_bar"], ref_p["p_c_bar"]
     gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
     opt, gm_p = full.at_many([sp_opt, min(max(gm - amb, lo), hi)])
     if not opt.ok:

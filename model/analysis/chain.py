@@ -36,7 +36,7 @@ from ..measured import derived
 from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
-from .advice import AdviceDraft, AdviceResult, AdviceSettings, draft_advice, settle_advice
+from .advice import AdviceDraft, AdviceResult, AdviceSettings, check_rows, draft_advice, settle_advice
 from .cip import CipSettings, ForecastState, cost_levels_for, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe, preset_stages, shared_stages
@@ -251,7 +251,7 @@ class WindowPartial:
     seed: tuple | None = None                   # (VResult, rows): the advice's representative points
                                                 # at the actual set points
     cost_runs: dict | None = None               # the cost of fouling's model runs (pass 2, ``_cost_runs``)
-    samples: pd.DataFrame | None = None         # per-sample model series (replay's samples.csv)
+    samples: dict | None = None         # per-sample model series (replay's samples.csv)
 
 
 COST_COLUMNS = ("Q_sink_kW", "W_total_kW", "Q_source_kW")     # what the cost of fouling's runs give
@@ -461,7 +461,8 @@ class AnalysisChain:
         """``prepare`` past its first checks (``der``: the measured side computed already)."""
         der = derived(data, fixed) if der is None else der
         for c in INPUT_COLUMNS:
-            der[c] = floats(data[c])
+            if c not in der.columns:    # (a replay's block of windows has them already)
+                der[c] = floats(data[c])
         task.der = der
         res.p_m_sp_actual_barg = float(der["p_m_sp"].mean())
         learner = state.learner
@@ -601,9 +602,8 @@ class AnalysisChain:
         adv_in = der
         sat = task.ls_saturated
         if sat is not None and sat.any() and task.T_out_sp_C is not None:
-            adv_in = der.copy()
-            t_out = adv_in["T_source_out"].to_numpy(dtype=float)
-            adv_in["T_source_out"] = np.where(sat, np.minimum(t_out, task.T_out_sp_C), t_out)
+            t_out = der["T_source_out"].to_numpy(dtype=float)
+            adv_in = der.assign(T_source_out=np.where(sat, np.minimum(t_out, task.T_out_sp_C), t_out))
         out.adaptive, out.der = adaptive, der     # pass 3: forecast, tracker
         # ---- advice up to its dead band
         if self.s.optimize:
@@ -612,7 +612,8 @@ class AnalysisChain:
                 measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
                             for st in STAGES for q in ("pi", "n")}
             # the surrogate fitted from earlier windows' optima, once it qualifies (issue #8 item 7)
-            ev_rows, ev_w = self._evaluation_rows(adv_in)
+            checked = check_rows(adv_in, self.s.advice)
+            ev_rows, ev_w = checked.rows, checked.w
             override, used = None, None
             if self.s.use_surrogate and task.tracker is not None:
                 pred = task.tracker.predict_setpoint(ev_rows, ev_w, adaptive)
@@ -624,7 +625,7 @@ class AnalysisChain:
                     coverage_share=res.coverage_share if learner is not None else 1.0,
                     curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
                     R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override,
-                    seed=seed)
+                    seed=seed, checked=checked)
                 out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
                 d = out.draft
                 base_pt = d.ev._cache.get(None) if d.ev is not None else None
@@ -673,15 +674,6 @@ class AnalysisChain:
                                      own=partial.tracker_row)
         return res
 
-    def _evaluation_rows(self, adv_in: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
-        """The window's representative rows and weights, as the advice evaluates them."""
-        data = numeric(adv_in, INPUT_COLUMNS).reset_index(drop=True)
-        k = int(self.s.advice.check_rows)
-        keep = np.unique(np.linspace(0, len(data) - 1, min(k, len(data))).round().astype(int))
-        data = data.iloc[keep].reset_index(drop=True)
-        n = self.s.advice.representative_points
-        return representative(data, n, groups(data, n))
-
     # ---- issue 10 ------------------------------------------------------------------------------
     def _cost_runs(self, res: WindowResult, cost_in: pd.DataFrame, adaptive: PlantParams,
                    seed: tuple | None, turn: int) -> dict:
@@ -691,7 +683,8 @@ class AnalysisChain:
         operating points of the window, the LS saturating as the plant's does (heat lost at its
         speed limit is part of the cost); each row starts from the nearest of the advice's
         solutions. In pass 2, so that a replay answers the calls of the windows in lockstep
-        together. {"levels": [K/kW], "frames": [DataFrame per level], "rows", "w", "seconds",
+        together. {"levels": [K/kW], "frames": [per level the runs' columns as arrays, status and
+        reason (``simulate_many``'s ``as_columns``)], "rows", "w", "seconds",
         "cpu_seconds"} (the times: the gateway's, one window at a time; in a replay's lockstep they
         include the other windows' turns)."""
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -701,10 +694,12 @@ class AnalysisChain:
         rows, w = representative(cost_in, c.cost_points)
         k = len(rows)
         sd, seed_rows = seed if seed is not None else (None, None)
-        allf = simulate_many(pd.concat([rows] * len(levels), ignore_index=True), adaptive,
-                             columns=COST_COLUMNS, ls_mode="float",
-                             R_th_f=np.repeat(np.asarray(levels) * 1e-3, k), seed=sd, seed_rows=seed_rows)
-        frames = [allf.iloc[i * k:(i + 1) * k].reset_index(drop=True) for i in range(len(levels))]
+        # the rows once per level (as input columns: the numbers their concatenated frame gives)
+        tiled = InputColumns({col: np.tile(a, len(levels)) for col, a in InputColumns.of(rows).cols.items()})
+        allf = simulate_many(tiled, adaptive, columns=COST_COLUMNS, ls_mode="float",
+                             R_th_f=np.repeat(np.asarray(levels) * 1e-3, k), seed=sd, seed_rows=seed_rows,
+                             as_columns=True)
+        frames = [{col: a[i * k:(i + 1) * k] for col, a in allf.items()} for i in range(len(levels))]
         return {"levels": levels, "frames": frames, "rows": rows, "w": w,
                 "seconds": time.perf_counter() - t0, "cpu_seconds": time.thread_time() - c0}
 
@@ -736,7 +731,7 @@ class AnalysisChain:
         runs, note = None, ""
         if keep.any():
             ww = w[keep] / w[keep].sum()
-            sums = [[float(np.sum(ww * f[k].to_numpy(dtype=float)[keep])) for f in frames] for k in cols]
+            sums = [[float(np.sum(ww * f[k][keep])) for f in frames] for k in cols]
             try:
                 runs = LevelRuns(np.array(levels), *sums)
             except CostError as exc:
@@ -847,10 +842,11 @@ def _plain(obj):
     return out
 
 
-def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
+def _window_samples(task: WindowTask, res: WindowResult) -> dict:
     """Per-sample model series of one window (replay's samples.csv): the model figures' COP, heat
     output and evaporating pressure (on the evenly spaced figure rows) and the learned eta_is curve
-    at each sample."""
+    at each sample; as columns (arrays of the window's length; ``window_start`` one text), which
+    replay puts into one frame for all windows (``replay.frame_of_parts``)."""
     data = task.data
     ts = data["timestamp"].to_numpy()
     # the columns first, the frame once (inserting them one by one costs pandas' checks each time)
@@ -875,4 +871,4 @@ def _window_samples(task: WindowTask, res: WindowResult) -> pd.DataFrame:
             if ok.any():
                 v[ok] = learner.eta_is(st, pi[ok], n[ok])
             cols[f"eta_is_{st}_model"] = v
-    return pd.DataFrame(cols, index=pd.RangeIndex(len(ts)))
+    return cols

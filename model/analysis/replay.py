@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 
 from ..calibration import CalibrationResult, calibrate, calibration_frame, spec_from_config
+from ..batch import INPUT_COLUMNS, floats
 from ..dpfit import DpCleanFit, DpFitError, fit_dp_clean
 from ..measured import derived, process, usable_counts
 from .. import lockstep
@@ -468,7 +469,7 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
 
     plan, skipped, cips = plan_windows(ts, processed, history, init_idx, s, notes)
     rows: list[dict] = []
-    sample_parts: list[pd.DataFrame] = []
+    sample_parts: list[dict] = []
     when: list[str] = []
     pending = sorted(cips, key=lambda c: c["end"])       # issue 10: CIPs reset the forecast
     if progress is not None:
@@ -482,7 +483,10 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         for b0 in range(0, len(plan), PASS1_BLOCK):
             block = plan[b0:b0 + PASS1_BLOCK]
             with recorded_stages() as records:
-                der = derived(history.iloc[np.concatenate([pos for pos, _ in block])], state.fixed)
+                rows_in = history.iloc[np.concatenate([pos for pos, _ in block])]
+                der = derived(rows_in, state.fixed)
+            for c in INPUT_COLUMNS:         # the model inputs beside it, as the chain adds them
+                der[c] = floats(rows_in[c])
             end = 0
             for pos, new_seg in block:
                 rows = slice(end, end + len(pos))
@@ -589,8 +593,34 @@ def plan_windows(ts: pd.DatetimeIndex, processed: pd.DataFrame, history: pd.Data
     return plan, skipped, cips
 
 
+_MISSING = object()
+
+
+def frame_of_parts(parts: list[dict]) -> pd.DataFrame:
+    """The windows' sample columns (``chain._window_samples``: arrays of one length per window,
+    with a ``timestamp`` column; a scalar is that value in every row) as one frame: what
+    ``pd.concat`` of a frame per window gives (the columns in the order they first appear, NaN
+    where a window has no such column, a RangeIndex), each column built once from the windows'
+    arrays instead of a frame per window and their concatenation."""
+    names = list(dict.fromkeys(k for p in parts for k in p))
+    lens = [len(p["timestamp"]) for p in parts]
+    cols = {}
+    for k in names:
+        arrs = []
+        for p, n in zip(parts, lens):
+            v = p.get(k, _MISSING)
+            if v is _MISSING:
+                arrs.append(np.full(n, np.nan))
+            elif np.ndim(v) == 0:
+                arrs.append(np.full(n, v, dtype=object))
+            else:
+                arrs.append(np.asarray(v))
+        cols[k] = np.concatenate(arrs)
+    return pd.DataFrame(cols, index=pd.RangeIndex(sum(lens)))
+
+
 def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.DataFrame,
-                 parts: list[pd.DataFrame]) -> pd.DataFrame:
+                 parts: list[dict]) -> pd.DataFrame:
     num = lambda c: pd.to_numeric(history[c], errors="coerce").to_numpy(dtype=float) \
         if c in history.columns else np.full(len(history), np.nan)  # noqa: E731
     out = pd.DataFrame({
@@ -605,7 +635,7 @@ def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.Data
         "N_LS_rpm": num("N_LS"), "N_HS_rpm": num("N_HS"), "p_m_sp_barg": num("p_m_sp"),
         "heat_balance_pct": processed["heat_balance_pct"].to_numpy(dtype=float)})
     if parts:
-        w = pd.concat(parts, ignore_index=True)
+        w = frame_of_parts(parts)
         w["timestamp"] = pd.to_datetime(w["timestamp"], utc=True)
         out = out.merge(w, on="timestamp", how="left")
     for c in SAMPLE_COLUMNS:

@@ -176,11 +176,11 @@ class Point:
         return v.to_numpy(dtype=float) if pd.api.types.is_numeric_dtype(v.dtype) else v.to_numpy()
 
 
-def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:
+def groups(data: pd.DataFrame, k: int, X: np.ndarray | None = None) -> list[np.ndarray]:
     """Row positions of ``data`` in k groups of similar operation: the samples sorted along the
     first principal component of their standardised inputs, split into k nearly equal parts
-    (one group per row when k >= len(data))."""
-    X = matrix(data)
+    (one group per row when k >= len(data)). ``X``: ``matrix(data)`` when the caller has it."""
+    X = matrix(data) if X is None else X
     n = len(X)
     if k >= n:
         return [np.array([i]) for i in range(n)]
@@ -194,12 +194,13 @@ def groups(data: pd.DataFrame, k: int) -> list[np.ndarray]:
     return [g for g in np.array_split(order, k) if len(g)]
 
 
-def representative(data: pd.DataFrame, k: int,
-                   parts: list[np.ndarray] | None = None) -> tuple[pd.DataFrame, np.ndarray]:
+def representative(data: pd.DataFrame, k: int, parts: list[np.ndarray] | None = None,
+                   X: np.ndarray | None = None) -> tuple[pd.DataFrame, np.ndarray]:
     """k representative rows of ``data`` (canonical inputs) and their weights (sample counts):
-    each group of ``groups(data, k)`` replaced by its mean (the data itself when k >= len(data))."""
-    X = matrix(data)
-    parts = parts if parts is not None else groups(data, k)
+    each group of ``groups(data, k)`` replaced by its mean (the data itself when k >= len(data)).
+    ``X``: ``matrix(data)`` when the caller has it."""
+    X = matrix(data) if X is None else X
+    parts = parts if parts is not None else groups(data, k, X=X)
     rows = np.array([X[g].mean(axis=0) for g in parts])
     w = np.array([len(g) for g in parts], dtype=float)
     return pd.DataFrame(rows, columns=list(INPUT_COLUMNS)), w

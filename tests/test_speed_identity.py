@@ -357,6 +357,14 @@ def test_the_advice_given_its_check_rows_is_the_advice_computing_them(learned, p
         assert getattr(a, k) == getattr(b, k) or (getattr(a, k) != getattr(a, k) and getattr(b, k) != getattr(b, k)), k
     pd.testing.assert_frame_equal(a.rows, b.rows, check_exact=True)
     assert repr(a.trusted) == repr(b.trusted) and np.array_equal(a.w, b.w)     # (the path holds NaN)
+    # the groups and representative points from the caller's matrix of the rows: the same
+    from model.optimize import groups
+    X = matrix(c.data)
+    assert all(np.array_equal(g, h) for g, h in zip(groups(c.data, 8), groups(c.data, 8, X=X), strict=True))
+    r1, w1 = representative(c.data, 8)
+    r2, w2 = representative(c.data, 8, groups(c.data, 8, X=X), X=X)
+    pd.testing.assert_frame_equal(r1, r2, check_exact=True)
+    assert np.array_equal(w1, w2)
 
 
 def test_a_learner_snapshot_is_its_pickled_copy_and_later_updates_leave_it(learned, plant):

@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 
 from .. import batch
-from ..batch import INPUT_COLUMNS, among, numeric
+from ..batch import INPUT_COLUMNS, among, matrix, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
                         representative, search, window_range, column_max, column_min)
 from ..params import PlantParams
@@ -471,8 +471,9 @@ def check_rows(data: pd.DataFrame, settings: AdviceSettings) -> CheckRows:
     actual = float(data["p_m_sp"].mean())
     keep = np.unique(np.linspace(0, len(data) - 1, min(int(s.check_rows), len(data))).round().astype(int))
     data = data.iloc[keep].reset_index(drop=True)
-    parts = groups(data, s.representative_points)
-    rows, w = representative(data, s.representative_points, parts)
+    X = matrix(data)
+    parts = groups(data, s.representative_points, X=X)
+    rows, w = representative(data, s.representative_points, parts, X=X)
     return CheckRows(actual, keep, data, parts, rows, w)
 
 
@@ -690,7 +691,7 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     return AdviceResult(
         p_m_sp_rec_barg=float(sp_rec), confident=confident, note=note,
         p_m_sp_actual_barg=actual, p_m_sp_model_opt_barg=float(sp_opt),
-        p_m_opt_barg=float(rec.frame["p_m_bar"].mean()) - amb, p_m_gm_barg=gm - amb,
+        p_m_opt_barg=float(pd.Series(rec.col("p_m_bar")).mean()) - amb, p_m_gm_barg=gm - amb,
         dCOP_pct=dcop, dCOP_sd_pct=sd, dQ_sink_pct=dq,
         dCOP_model_opt_pct=100.0 * (opt.COP / ref.COP - 1.0),
         dQ_sink_model_opt_pct=100.0 * (opt.Q_sink_kW / ref.Q_sink_kW - 1.0),

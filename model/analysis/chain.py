@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 import numpy as np
 import pandas as pd
 
-from ..batch import INPUT_COLUMNS, InputColumns, floats, numeric, simulate_batch, simulate_many, solved_mask
+from ..batch import INPUT_COLUMNS, InputColumns, floats, matrix, numeric, simulate_batch, simulate_many, solved_mask
 from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
@@ -311,8 +311,9 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     answer depends on the start ``k0`` only within ``tol_bar`` (the chain starts every window at 1,
     so windows are independent of each other). ``solution``: a list that gets (VResult, rows) of
     the representative points at the factor returned (the chain's later runs start from it)."""
-    parts = groups(der, points)
-    rows, w = representative(der, points, parts)
+    X = matrix(der)
+    parts = groups(der, points, X=X)
+    rows, w = representative(der, points, parts, X=X)
     meas = der["p_c_bar"].to_numpy(dtype=float)
     target = float(np.nansum([w[i] * np.nanmean(meas[g]) for i, g in enumerate(parts)]) / w.sum())
     lo, hi = math.log(0.3), math.log(3.0)

@@ -41,7 +41,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -131,7 +131,7 @@ class Point:
     _frame: pd.DataFrame | None     # per-row model outputs (None: built from ``cols``)
     beyond: float | None = None     # search: a better set point just outside the feasible set
     _vres: object = None            # ``vres``, or (VResult, first row, end row) not taken yet
-    cols: dict | None = None        # the frame's columns as arrays (model.vcycle.VResult.columns)
+    cols: "dict | PartColumns | None" = None   # the frame's columns as arrays (VResult.columns)
     index: object = None            # the frame's index, with ``cols``
 
     @property
@@ -341,13 +341,13 @@ class Evaluator:
         guess, gidx = self._guesses(sps, idx)
         vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
                           guess_index=gidx)
-        cols = vres.columns(COLUMNS)
+        solved = vres.solved()
         w = self.w[idx]
         index = self.rows.index[idx]
         out = []
         for j, sp in enumerate(sps):
             part = slice(j * n, (j + 1) * n)
-            p = _point(sp, None, w, cols={c: v[part] for c, v in cols.items()}, index=index)
+            p = _point(sp, None, w, cols=PartColumns(vres, solved, part), index=index)
             # a one-set-point call's result is the point's own; else taken when first read
             p.vres = vres if k == 1 else (vres, j * n, (j + 1) * n)
             out.append(p)
@@ -423,13 +423,13 @@ def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: lis
                       R_th_f=np.repeat(R, m * n),
                       deltas={key: np.repeat(np.asarray(a, dtype=float), m * n, axis=0)
                               for key, a in deltas.items()})
-    cols = vres.columns(COLUMNS)
+    solved = vres.solved()
     out = []
     for d in range(k):
         pts = []
         for j, sp in enumerate(sps):
             part = slice((d * m + j) * n, (d * m + j + 1) * n)
-            pts.append(_point(sp, None, probe.w, cols={c: v[part] for c, v in cols.items()},
+            pts.append(_point(sp, None, probe.w, cols=PartColumns(vres, solved, part),
                               index=probe.rows.index))
         out.append(pts)
     return out
@@ -473,7 +473,40 @@ def _take(v, idx: np.ndarray):
     return take_rows(v, idx)
 
 
-def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: dict | None = None,
+class PartColumns(Mapping):
+    """``VResult.columns(COLUMNS)``'s arrays for the rows ``part`` (a slice) of a solver call, each
+    made when first read: the same numbers (a point's readers want a few of its 17 columns, and a
+    call answers many points). ``solved``: the call's ``VResult.solved()``. Pickles as the plain
+    dict of every column."""
+    __slots__ = ("_vres", "_solved", "_part", "_got")
+
+    def __init__(self, vres, solved: np.ndarray, part: slice) -> None:
+        self._vres, self._solved, self._part, self._got = vres, solved, part, {}
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        a = self._got.get(key)
+        if a is None:
+            v, part = self._vres, self._part
+            if key in ("status", "reason"):
+                a = np.asarray(getattr(v, key), dtype=object)[part]
+            elif key in COLUMNS:
+                a = np.where(self._solved[part], np.asarray(v.values[key], dtype=float)[part], np.nan)
+            else:
+                raise KeyError(key)
+            self._got[key] = a
+        return a
+
+    def __iter__(self):
+        return iter((*COLUMNS, "status", "reason"))
+
+    def __len__(self) -> int:
+        return len(COLUMNS) + 2
+
+    def __reduce__(self):
+        return dict, (dict(self.items()),)
+
+
+def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: "dict | PartColumns | None" = None,
            index=None) -> Point:
     """The Point of a frame of per-row outputs, or of its columns ``cols`` with ``index``."""
     get = (lambda k: cols[k]) if cols is not None else (lambda k: frame[k].to_numpy(dtype=float))  # noqa: E731

@@ -66,6 +66,27 @@ def test_a_points_solver_result_is_its_rows_of_the_call_and_pickles_alone(learne
     assert len(q.vres) == n and len(q.vres.status) == n
 
 
+def test_a_points_columns_are_its_rows_of_the_calls_columns(learned):
+    """A point of a call over several set points reads its columns when first asked
+    (``PartColumns``): each is the call's ``VResult.columns`` for its rows; the mapping pickles as
+    the plain dict of all of them, and an unknown column is a KeyError."""
+    from model.optimize import COLUMNS, PartColumns
+    _, _, ev, pts = learned
+    n = len(ev.rows)
+    p = pts[3]
+    assert isinstance(p.cols, PartColumns)
+    whole = p._vres[0] if type(p._vres) is tuple else p.vres
+    full = whole.columns(COLUMNS)
+    assert list(p.cols) == [*COLUMNS, "status", "reason"] and len(p.cols) == len(COLUMNS) + 2
+    for c in (*COLUMNS, "status", "reason"):
+        assert np.array_equal(p.cols[c], full[c][3 * n:4 * n], equal_nan=c not in ("status", "reason")), c
+        assert p.cols[c].dtype == full[c].dtype
+    back = pickle.loads(pickle.dumps(p.cols))
+    assert type(back) is dict and list(back) == list(p.cols)
+    with pytest.raises(KeyError):
+        p.cols["no such column"]
+
+
 def test_distances_and_shape_scores_of_many_points_equal_point_by_point(learned, plant):
     _, learner, ev, pts = learned
     offsets = {"LS": (0.01, -0.02), "HS": (0.0, 0.01)}

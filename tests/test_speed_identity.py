@@ -75,16 +75,41 @@ def test_a_points_columns_are_its_rows_of_the_calls_columns(learned):
     n = len(ev.rows)
     p = pts[3]
     assert isinstance(p.cols, PartColumns)
-    whole = p._vres[0] if type(p._vres) is tuple else p.vres
-    full = whole.columns(COLUMNS)
+    if type(p._vres) is tuple:                   # (another test may have taken its rows already)
+        assert p._vres[1:] == (3 * n, 4 * n)
+    own = p.vres.columns(COLUMNS)                # the call's result's rows of this point
     assert list(p.cols) == [*COLUMNS, "status", "reason"] and len(p.cols) == len(COLUMNS) + 2
     for c in (*COLUMNS, "status", "reason"):
-        assert np.array_equal(p.cols[c], full[c][3 * n:4 * n], equal_nan=c not in ("status", "reason")), c
-        assert p.cols[c].dtype == full[c].dtype
+        assert len(p.cols[c]) == n
+        assert np.array_equal(p.cols[c], own[c], equal_nan=c not in ("status", "reason")), c
+        assert p.cols[c].dtype == own[c].dtype
     back = pickle.loads(pickle.dumps(p.cols))
     assert type(back) is dict and list(back) == list(p.cols)
     with pytest.raises(KeyError):
         p.cols["no such column"]
+
+
+def test_weighted_mean_is_np_average_to_the_bit_and_status_in_is_among(learned):
+    """The trusted stretch's p_m of a point (``weighted_mean``) is ``np.average``'s number, NaN and
+    the zero-weight error included; a point's solved-rows test over its call's rows once
+    (``status_in``) is ``among`` of its own status."""
+    from model.batch import among
+    from model.optimize import SOLVED, weighted_mean
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 7, 8, 40, 129):
+        for _ in range(20):
+            a = rng.normal(10.0, 3.0, n) * 10.0 ** rng.integers(-3, 4)
+            w = rng.integers(1, 30, n).astype(float)
+            assert weighted_mean(a, w) == float(np.average(a, weights=w))
+    a[0] = np.nan
+    assert math.isnan(weighted_mean(a, w))
+    with pytest.raises(ZeroDivisionError, match="^Weights sum to zero, can't be normalized$"):
+        weighted_mean(np.ones(3), np.zeros(3))
+    assert weighted_mean(np.arange(4), np.ones(4)) == 1.5            # not float64: numpy's own path
+    _, _, ev, pts = learned
+    for p in pts:
+        for choices in (SOLVED, ("ok",), ("ls_speed_high", "ls_speed_low")):
+            assert np.array_equal(p.status_in(choices), among(p.col("status"), choices))
 
 
 def test_distances_and_shape_scores_of_many_points_equal_point_by_point(learned, plant):

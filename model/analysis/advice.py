@@ -43,7 +43,7 @@ import pandas as pd
 from .. import batch
 from ..batch import INPUT_COLUMNS, among, matrix, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
-                        representative, search, window_range, column_max, column_min)
+                        representative, search, weighted_mean, window_range, column_max, column_min)
 from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner
 
@@ -174,7 +174,7 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
     """The intermediate pressure of an evaluation (weighted mean over its rows) [bar(g)]."""
-    return float(np.average(p.col("p_m_bar"), weights=w)) - amb
+    return weighted_mean(p.col("p_m_bar"), w) - amb
 
 
 @dataclass(frozen=True)
@@ -268,7 +268,7 @@ def _feasible(trusted: Trusted | None, w: np.ndarray, amb: float):
 
     def ok(p: Point) -> bool:
         status = p.col("status")
-        if not among(status, SOLVED).all():
+        if not p.status_in(SOLVED).all():
             return False
         if len(status) == len(w):
             pm = _pm_barg(p, w, amb)

@@ -413,6 +413,50 @@ def test_the_advice_given_its_check_rows_is_the_advice_computing_them(learned, p
     assert np.array_equal(w1, w2)
 
 
+def test_the_bins_stacked_statistics_are_the_bin_by_bin_ones():
+    """The local fits' per-bin statistics live in two stacked arrays, so that a decay is one
+    multiplication: after adds and decays (more bins than the first allocation) every bin's
+    numbers, ``arrays()`` and ``to_dict()`` are those of one pair of arrays per bin (the plain
+    form, written out here), a copy is independent, and the document round-trips."""
+    from model.analysis.compressors import _BinStats, _zbasis
+    rng = np.random.default_rng(5)
+    A_ref, b_ref = {}, {}
+    st = _BinStats(0.2, 0.05)
+    for step in range(12):
+        pi = rng.uniform(1.5, 6.5, 40)
+        n = rng.uniform(0.3, 1.0, 40)
+        X, y = _zbasis(pi, n), rng.normal(0.7, 0.02, 40)
+        f = 0.5 ** rng.uniform(0.0, 0.3)
+        for k in A_ref:                                   # the plain form: bin by bin
+            A_ref[k] *= f
+            b_ref[k] *= f
+        st.decay(f)
+        keys = list(zip(np.floor(pi / 0.2).astype(int).tolist(), np.floor(n / 0.05).astype(int).tolist()))
+        for key in set(keys):
+            m = np.array([k == key for k in keys])
+            if key not in A_ref:
+                A_ref[key], b_ref[key] = np.zeros((6, 6)), np.zeros(6)
+            A_ref[key] += X[m].T @ X[m]
+            b_ref[key] += X[m].T @ y[m]
+        st.add(pi, n, X, y)
+    assert len(A_ref) > 16                                # the arrays grew past their first size
+    assert st.A.keys() == A_ref.keys()
+    for k in A_ref:
+        assert np.array_equal(st.A[k], A_ref[k]) and np.array_equal(st.b[k], b_ref[k])
+    c, As, bs = st.arrays()
+    keys = sorted(A_ref)
+    assert np.array_equal(As, np.array([A_ref[k] for k in keys])) and np.array_equal(bs, np.array([b_ref[k] for k in keys]))
+    assert np.array_equal(c, np.array([((a + 0.5) * 0.2, (b + 0.5) * 0.05) for a, b in keys]))
+    iu = np.triu_indices(6)
+    assert st.to_dict() == {"bins": [[a, b, A_ref[(a, b)][iu].tolist(), b_ref[(a, b)].tolist()] for a, b in keys]}
+    back = _BinStats.from_dict(st.to_dict(), 0.2, 0.05)
+    assert back.to_dict() == st.to_dict()
+    cp = st.copy()
+    cp.decay(0.5)
+    assert st.to_dict() != cp.to_dict() and st.to_dict() == back.to_dict()
+    assert _BinStats(0.2, 0.05).arrays()[1].shape == (0, 6, 6)
+
+
 def test_a_learner_snapshot_is_its_pickled_copy_and_later_updates_leave_it(learned, plant):
     """A replay's in-process window task takes a snapshot of the learner instead of a pickled copy:
     the same state to the bit (every statistic, bin, coverage weight, drive sum, the local curves),

@@ -529,18 +529,56 @@ class _Coverage:
                    {(int(a), int(b)): float(w) for a, b, w in d["bins"]})
 
 
-@dataclass
 class _BinStats:
-    """Decaying sufficient statistics of one curve per coverage bin (for the local fits)."""
-    bin_pi: float
-    bin_n: float
-    A: dict = field(default_factory=dict)      # bin -> (6, 6)
-    b: dict = field(default_factory=dict)      # bin -> (6,)
+    """Decaying sufficient statistics of one curve per coverage bin (for the local fits). The
+    bins' (6, 6) and (6,) statistics are rows of two stacked arrays (in the order the bins were
+    first seen; ``A`` and ``b`` give them per bin), so that a decay is one multiplication of the
+    used rows: element by element the numbers of multiplying each bin's arrays (a year's replay
+    has hundreds of bins, two numpy calls each per window before)."""
+
+    def __init__(self, bin_pi: float, bin_n: float, A: dict | None = None, b: dict | None = None) -> None:
+        self.bin_pi, self.bin_n = bin_pi, bin_n
+        self._index: dict = {}                  # bin -> row of _A and _b
+        self._A = np.zeros((0, 6, 6))
+        self._b = np.zeros((0, 6))
+        for key in (A or {}):
+            i = self._row(key)
+            self._A[i] = A[key]
+            self._b[i] = b[key]
+
+    def _row(self, key) -> int:
+        """The row of bin ``key`` (a new one of zeros the first time)."""
+        i = self._index.get(key)
+        if i is None:
+            i = len(self._index)
+            if i == len(self._A):               # room for more bins: doubled
+                cap = max(16, 2 * len(self._A))
+                A, b = np.zeros((cap, 6, 6)), np.zeros((cap, 6))
+                A[:i], b[:i] = self._A[:i], self._b[:i]
+                self._A, self._b = A, b
+            self._index[key] = i
+        return i
+
+    @property
+    def A(self) -> dict:
+        """bin -> its (6, 6) statistic (a view of its row)."""
+        return {k: self._A[i] for k, i in self._index.items()}
+
+    @property
+    def b(self) -> dict:
+        """bin -> its (6,) statistic (a view of its row)."""
+        return {k: self._b[i] for k, i in self._index.items()}
+
+    def copy(self) -> "_BinStats":
+        out = _BinStats(self.bin_pi, self.bin_n)
+        out._index = dict(self._index)
+        out._A, out._b = self._A.copy(), self._b.copy()
+        return out
 
     def decay(self, f: float) -> None:
-        for k in self.A:
-            self.A[k] *= f
-            self.b[k] *= f
+        n = len(self._index)
+        self._A[:n] *= f
+        self._b[:n] *= f
 
     def add(self, pi: np.ndarray, n: np.ndarray, X: np.ndarray, y: np.ndarray) -> None:
         ip = np.floor(pi / self.bin_pi).astype(int)
@@ -549,22 +587,22 @@ class _BinStats:
         for key in set(keys):
             m = np.array([k == key for k in keys])
             Xm, ym = X[m], y[m]
-            if key not in self.A:
-                self.A[key], self.b[key] = np.zeros((6, 6)), np.zeros(6)
-            self.A[key] += Xm.T @ Xm
-            self.b[key] += Xm.T @ ym
+            i = self._row(key)
+            self._A[i] += Xm.T @ Xm
+            self._b[i] += Xm.T @ ym
 
     def arrays(self):
-        keys = sorted(self.A)
+        keys = sorted(self._index)
         if not keys:
             return np.zeros((0, 2)), np.zeros((0, 6, 6)), np.zeros((0, 6))
+        rows = [self._index[k] for k in keys]
         c = np.array([((a + 0.5) * self.bin_pi, (b + 0.5) * self.bin_n) for a, b in keys])
-        return c, np.array([self.A[k] for k in keys]), np.array([self.b[k] for k in keys])
+        return c, self._A[rows], self._b[rows]
 
     def to_dict(self) -> dict:
         iu = np.triu_indices(6)
-        return {"bins": [[a, b, self.A[(a, b)][iu].tolist(), self.b[(a, b)].tolist()]
-                         for a, b in sorted(self.A)]}
+        return {"bins": [[a, b, self._A[self._index[(a, b)]][iu].tolist(), self._b[self._index[(a, b)]].tolist()]
+                         for a, b in sorted(self._index)]}
 
     @classmethod
     def from_dict(cls, d: dict, bin_pi: float, bin_n: float) -> "_BinStats":
@@ -574,8 +612,9 @@ class _BinStats:
             A = np.zeros((6, 6))
             A[iu] = tri
             A = A + A.T - np.diag(np.diag(A))
-            out.A[(int(a), int(b))] = A
-            out.b[(int(a), int(b))] = np.array(vec, dtype=float)
+            i = out._row((int(a), int(b)))
+            out._A[i] = A
+            out._b[i] = np.array(vec, dtype=float)
         return out
 
 
@@ -1379,8 +1418,7 @@ class CompressorLearner:
         a dict of the snapshot's own."""
         out = copy.copy(self)
         out.stats = {k: _Stats(v.A.copy(), v.b.copy(), v.yy, v.w, v.rho1) for k, v in self.stats.items()}
-        out.bins = {k: _BinStats(v.bin_pi, v.bin_n, {q: a.copy() for q, a in v.A.items()},
-                                 {q: a.copy() for q, a in v.b.items()}) for k, v in self.bins.items()}
+        out.bins = {k: v.copy() for k, v in self.bins.items()}
         out.coverage = {k: _Coverage(v.bin_pi, v.bin_n, dict(v.bins)) for k, v in self.coverage.items()}
         out.drive = {k: list(v) for k, v in self.drive.items()}
         out.subcooling = list(self.subcooling)

@@ -345,13 +345,13 @@ class Evaluator:
         guess, gidx = self._guesses(sps, idx)
         vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
                           guess_index=gidx)
-        solved, shared = vres.solved(), {}
+        solved, shared, outs = vres.solved(), {}, _Outputs(vres)
         w = self.w[idx]
         index = self.rows.index[idx]
         out = []
         for j, sp in enumerate(sps):
             part = slice(j * n, (j + 1) * n)
-            p = _point(sp, None, w, cols=PartColumns(vres, solved, part, shared), index=index)
+            p = _point(sp, None, w, cols=PartColumns(outs, solved, part, shared), index=index)
             # a one-set-point call's result is the point's own; else taken when first read
             p.vres = vres if k == 1 else (vres, j * n, (j + 1) * n)
             out.append(p)
@@ -427,13 +427,13 @@ def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: lis
                       R_th_f=np.repeat(R, m * n),
                       deltas={key: np.repeat(np.asarray(a, dtype=float), m * n, axis=0)
                               for key, a in deltas.items()})
-    solved, shared = vres.solved(), {}
+    solved, shared, outs = vres.solved(), {}, _Outputs(vres)
     out = []
     for d in range(k):
         pts = []
         for j, sp in enumerate(sps):
             part = slice((d * m + j) * n, (d * m + j + 1) * n)
-            pts.append(_point(sp, None, probe.w, cols=PartColumns(vres, solved, part, shared),
+            pts.append(_point(sp, None, probe.w, cols=PartColumns(outs, solved, part, shared),
                               index=probe.rows.index))
         out.append(pts)
     return out
@@ -477,6 +477,15 @@ def _take(v, idx: np.ndarray):
     return take_rows(v, idx)
 
 
+class _Outputs:
+    """A solver call's outputs that ``PartColumns`` reads (COLUMNS, status, reason)."""
+    __slots__ = ("values", "status", "reason")
+
+    def __init__(self, vres) -> None:
+        self.values = {c: vres.values[c] for c in COLUMNS}
+        self.status, self.reason = vres.status, vres.reason
+
+
 class PartColumns(Mapping):
     """``VResult.columns(COLUMNS)``'s arrays for the rows ``part`` (a slice) of a solver call, each
     made when first read: the same numbers (a point's readers want a few of its 17 columns, and a
@@ -485,7 +494,10 @@ class PartColumns(Mapping):
     __slots__ = ("_vres", "_solved", "_part", "_got", "_shared")
 
     def __init__(self, vres, solved: np.ndarray, part: slice, shared: dict | None = None) -> None:
-        self._vres, self._solved, self._part, self._got = vres, solved, part, {}
+        # of the call's result only what the columns need (not its warm-start state: a point may
+        # outlive the call's other points)
+        self._vres = vres if isinstance(vres, _Outputs) else _Outputs(vres)
+        self._solved, self._part, self._got = solved, part, {}
         self._shared = {} if shared is None else shared     # the call's whole-row tests
 
     def status_in(self, choices: tuple) -> np.ndarray:

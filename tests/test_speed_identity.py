@@ -372,7 +372,7 @@ def test_the_windows_sample_columns_make_the_frame_pd_concat_makes():
     parts = []
     for i, n in enumerate((5, 3, 4)):
         ts = pd.DatetimeIndex([t0 + pd.Timedelta(minutes=10 * i + k) for k in range(n)])
-        p = {"timestamp": pd.Series(ts).to_numpy(), "window_start": ts[0].isoformat()}
+        p = {"timestamp": pd.Series(ts).array, "window_start": ts[0].isoformat()}
         if i != 1:
             p["COP_fixed"] = rng.normal(4.0, 0.1, n)
             p["COP_fixed"][0] = np.nan
@@ -382,7 +382,9 @@ def test_the_windows_sample_columns_make_the_frame_pd_concat_makes():
                          ignore_index=True)
     got = frame_of_parts(parts)
     pd.testing.assert_frame_equal(got, expected, check_exact=True)
+    assert all(p == {} for p in parts)                    # consumed: a year's arrays not held twice
     assert list(got.columns) == ["timestamp", "window_start", "COP_fixed", "eta_is_LS_model"]
+    assert str(got["timestamp"].dtype).startswith("datetime64[") and got["timestamp"].dt.tz is not None
     assert got["COP_fixed"].isna().tolist() == [True] + [False] * 4 + [True] * 3 + [True, False, False, False]
 
 
@@ -452,6 +454,9 @@ def test_the_bins_stacked_statistics_are_the_bin_by_bin_ones():
     back = _BinStats.from_dict(st.to_dict(), 0.2, 0.05)
     assert back.to_dict() == st.to_dict()
     cp = st.copy()
+    assert len(cp._A) == len(A_ref) < len(st._A)          # the used rows only
+    cp.add(np.array([9.9]), np.array([0.1]), _zbasis(np.array([9.9]), np.array([0.1])), np.array([0.7]))
+    assert len(cp.A) == len(A_ref) + 1 and len(st.A) == len(A_ref)
     cp.decay(0.5)
     assert st.to_dict() != cp.to_dict() and st.to_dict() == back.to_dict()
     assert _BinStats(0.2, 0.05).arrays()[1].shape == (0, 6, 6)

@@ -849,7 +849,7 @@ def _window_samples(task: WindowTask, res: WindowResult) -> dict:
     at each sample; as columns (arrays of the window's length; ``window_start`` one text), which
     replay puts into one frame for all windows (``replay.frame_of_parts``)."""
     data = task.data
-    ts = data["timestamp"].to_numpy()
+    ts = data["timestamp"].array            # (compact: not an object array of Timestamps)
     # the columns first, the frame once (inserting them one by one costs pandas' checks each time)
     cols: dict = {"timestamp": ts, "window_start": res.window_start}
     series = res.detail.get("model_series")

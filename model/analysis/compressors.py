@@ -570,9 +570,11 @@ class _BinStats:
         return {k: self._b[i] for k, i in self._index.items()}
 
     def copy(self) -> "_BinStats":
+        """An independent copy (of the used rows only: a window's snapshot of the learner)."""
         out = _BinStats(self.bin_pi, self.bin_n)
+        n = len(self._index)
         out._index = dict(self._index)
-        out._A, out._b = self._A.copy(), self._b.copy()
+        out._A, out._b = self._A[:n].copy(), self._b[:n].copy()
         return out
 
     def decay(self, f: float) -> None:

@@ -601,14 +601,19 @@ def frame_of_parts(parts: list[dict]) -> pd.DataFrame:
     with a ``timestamp`` column; a scalar is that value in every row) as one frame: what
     ``pd.concat`` of a frame per window gives (the columns in the order they first appear, NaN
     where a window has no such column, a RangeIndex), each column built once from the windows'
-    arrays instead of a frame per window and their concatenation."""
+    arrays instead of a frame per window and their concatenation. Consumes the parts (each window's
+    arrays are let go once its column is built: a plant-year's samples are not held twice)."""
     names = list(dict.fromkeys(k for p in parts for k in p))
     lens = [len(p["timestamp"]) for p in parts]
     cols = {}
     for k in names:
+        vals = [p.pop(k, _MISSING) for p in parts]
+        if all(isinstance(v, pd.api.extensions.ExtensionArray) for v in vals):
+            # (the times: pandas' arrays, joined as pandas joins them)
+            cols[k] = pd.concat([pd.Series(v, copy=False) for v in vals], ignore_index=True).array
+            continue
         arrs = []
-        for p, n in zip(parts, lens):
-            v = p.get(k, _MISSING)
+        for v, n in zip(vals, lens):
             if v is _MISSING:
                 arrs.append(np.full(n, np.nan))
             elif np.ndim(v) == 0:

@@ -251,7 +251,7 @@ class WindowPartial:
     seed: tuple | None = None                   # (VResult, rows): the advice's representative points
                                                 # at the actual set points
     cost_runs: dict | None = None               # the cost of fouling's model runs (pass 2, ``_cost_runs``)
-    samples: dict | None = None         # per-sample model series (replay's samples.csv)
+    samples: dict | None = None                 # per-sample model series (replay's samples.csv)
 
 
 COST_COLUMNS = ("Q_sink_kW", "W_total_kW", "Q_source_kW")     # what the cost of fouling's runs give

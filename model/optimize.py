@@ -491,12 +491,13 @@ class PartColumns(Mapping):
     made when first read: the same numbers (a point's readers want a few of its 17 columns, and a
     call answers many points). ``solved``: the call's ``VResult.solved()``. Pickles as the plain
     dict of every column."""
-    __slots__ = ("_vres", "_solved", "_part", "_got", "_shared")
+    __slots__ = ("_out", "_solved", "_part", "_got", "_shared")
 
     def __init__(self, vres, solved: np.ndarray, part: slice, shared: dict | None = None) -> None:
+        """``vres``: the call's VResult or its ``_Outputs`` (shared by the call's points)."""
         # of the call's result only what the columns need (not its warm-start state: a point may
         # outlive the call's other points)
-        self._vres = vres if isinstance(vres, _Outputs) else _Outputs(vres)
+        self._out = vres if isinstance(vres, _Outputs) else _Outputs(vres)
         self._solved, self._part, self._got = solved, part, {}
         self._shared = {} if shared is None else shared     # the call's whole-row tests
 
@@ -504,13 +505,13 @@ class PartColumns(Mapping):
         """``among(self["status"], choices)``: the test over the call's rows once, then these."""
         whole = self._shared.get(choices)
         if whole is None:
-            whole = self._shared[choices] = among(np.asarray(self._vres.status, dtype=object), choices)
+            whole = self._shared[choices] = among(np.asarray(self._out.status, dtype=object), choices)
         return whole[self._part]
 
     def __getitem__(self, key: str) -> np.ndarray:
         a = self._got.get(key)
         if a is None:
-            v, part = self._vres, self._part
+            v, part = self._out, self._part
             if key in ("status", "reason"):
                 a = np.asarray(getattr(v, key), dtype=object)[part]
             elif key in COLUMNS:

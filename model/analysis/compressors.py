@@ -536,15 +536,11 @@ class _BinStats:
     used rows: element by element the numbers of multiplying each bin's arrays (a year's replay
     has hundreds of bins, two numpy calls each per window before)."""
 
-    def __init__(self, bin_pi: float, bin_n: float, A: dict | None = None, b: dict | None = None) -> None:
+    def __init__(self, bin_pi: float, bin_n: float) -> None:
         self.bin_pi, self.bin_n = bin_pi, bin_n
         self._index: dict = {}                  # bin -> row of _A and _b
         self._A = np.zeros((0, 6, 6))
         self._b = np.zeros((0, 6))
-        for key in (A or {}):
-            i = self._row(key)
-            self._A[i] = A[key]
-            self._b[i] = b[key]
 
     def _row(self, key) -> int:
         """The row of bin ``key`` (a new one of zeros the first time)."""
@@ -603,8 +599,8 @@ class _BinStats:
 
     def to_dict(self) -> dict:
         iu = np.triu_indices(6)
-        return {"bins": [[a, b, self._A[self._index[(a, b)]][iu].tolist(), self._b[self._index[(a, b)]].tolist()]
-                         for a, b in sorted(self._index)]}
+        return {"bins": [[a, b, self._A[i][iu].tolist(), self._b[i].tolist()]
+                         for (a, b), i in sorted(self._index.items())]}
 
     @classmethod
     def from_dict(cls, d: dict, bin_pi: float, bin_n: float) -> "_BinStats":

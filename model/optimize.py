@@ -155,7 +155,18 @@ class Point:
 
     def __getstate__(self):
         self.vres       # noqa: B018 - a pickled point carries its own rows, not the whole call's
+        if "_memo" in self.__dict__:
+            return {k: v for k, v in self.__dict__.items() if k != "_memo"}
         return self.__dict__
+
+    @property
+    def memo(self) -> dict:
+        """Figures its readers derive from the point, kept with it by them (each under its own key,
+        with what it was derived with, to check; not pickled)."""
+        m = self.__dict__.get("_memo")
+        if m is None:
+            m = self.__dict__["_memo"] = {}
+        return m
 
     @property
     def ok(self) -> bool:

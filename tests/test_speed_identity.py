@@ -583,3 +583,93 @@ def test_a_replay_files_csv_is_pandas_to_csv_to_the_byte(tmp_path):
             assert rows[8].split(",")[1:3] == ["-inf", "-inf"] and rows[9].split(",")[1:3] == ["-0", "-0"]
             assert rows[1].split(",")[4] == "0.3333333333"
             assert '"a, ""b""' in rows[6] and rows[7] == 'c",False,-95'
+
+
+def test_the_scorer_scores_each_point_once_with_the_numbers_of_each_alone(learned, plant, monkeypatch):
+    """``_scorer`` computes a point's shape error the first time it meets the point (the search
+    scores its candidates again when it compares them); every score is the one computed alone."""
+    import model.analysis.advice as advice
+    _, learner, ev, pts = learned
+    offsets = {"LS": (0.01, -0.02), "HS": (0.0, 0.01)}
+    s = AdviceSettings()
+    alone = {id(p): _shape_at(learner, plant, offsets, s, p) for p in pts}
+    met = []
+    real = advice._shape_many
+    monkeypatch.setattr(advice, "_shape_many", lambda *a: (met.extend(a[-1]), real(*a))[1])
+    score = _scorer(learner, plant, offsets, s)
+    first = score.many(pts[:6])
+    assert [id(p) for p in met] == [id(p) for p in pts[:6]]
+    again = score.many([pts[5], *pts[:8]])                # two new points, one twice in the call
+    assert [id(p) for p in met[6:]] == [id(p) for p in pts[6:8]]
+    assert again[1:7] == first and again[0] == first[5]
+    for p, v in zip(pts[:8], again[1:]):
+        assert v == p.COP * (1.0 - 0.01 * s.search_k * alone[id(p)]) if p.ok else v == p.COP
+        assert score(p) == v and score.shape(p) == alone[id(p)]
+    assert len(met) == 8                                  # nothing computed twice
+    assert len({alone[id(p)] for p in pts if p.ok}) > 3
+
+
+def test_a_points_memo_answers_its_own_inputs_only_and_is_not_pickled(learned, plant):
+    """``_operating_points`` and ``_pm_barg`` keep their answer with the point, for the parameters
+    and weights they were given: other ones get their own numbers; a pickled point leaves it."""
+    from model.analysis.advice import _pm_barg
+    from model.optimize import weighted_mean
+    _, _, ev, pts = learned
+    p = pts[4]
+    a = _operating_points(p, plant)
+    assert _operating_points(p, plant) is a
+    other = plant.replace(comp_LS=plant.comp_LS.replace(N_nom=2.0 * plant.comp_LS.N_nom))
+    b = _operating_points(p, other)
+    assert np.array_equal(b["LS"][1], 0.5 * a["LS"][1]) and np.array_equal(b["HS"][1], a["HS"][1])
+    assert np.array_equal(b["LS"][0], p.col("p_m_bar") / p.col("p_e_bar"))
+    w2 = np.arange(1.0, len(ev.w) + 1.0)
+    x, y = _pm_barg(p, ev.w, 1.0), _pm_barg(p, w2, 1.0)
+    assert x == weighted_mean(p.col("p_m_bar"), ev.w) - 1.0 and y == weighted_mean(p.col("p_m_bar"), w2) - 1.0
+    assert x != y and _pm_barg(p, ev.w, 1.01) == x + 1.0 - 1.01
+    assert "_memo" in p.__dict__
+    q = pickle.loads(pickle.dumps(p))
+    assert "_memo" not in q.__dict__ and q.COP == p.COP
+    assert _pm_barg(q, ev.w, 1.0) == x
+
+
+def test_local_curves_from_kept_node_weights_are_the_computed_ones(learned, plant, monkeypatch):
+    """A learner's local curves built with the grid weights of an earlier build (``_node_weights``
+    keeps the last few, by the inputs' bytes) are the ones built from scratch; other bins get
+    their own weights, and the kept arrays are read-only."""
+    import model.analysis.compressors as C
+    _, learner, _, _ = learned
+    key = ("LS", "eta_is")
+
+    def build(lr):
+        ps, st = lr._prior_stats[key], lr.stats[key]
+        return C.LocalCurves(lr.bins[key], lr._coef(*key), ps.A + st.A, lr.coverage["LS"], lr.s)
+    monkeypatch.setattr(C, "_NODE_WEIGHTS", {})
+    fresh = build(learner)
+    assert fresh.ok and len(C._NODE_WEIGHTS) == 1
+    (near, w_all), = C._NODE_WEIGHTS.values()
+    assert not near.flags.writeable and not w_all.flags.writeable
+    kept = build(learner)
+    assert len(C._NODE_WEIGHTS) == 1
+    assert np.array_equal(kept.coef, fresh.coef, equal_nan=True) and np.array_equal(kept.valid, fresh.valid)
+    moved = learner.snapshot()                    # one more bin far from the others
+    moved.bins[key].add(np.array([9.0]), np.array([0.2]), np.ones((1, 6)), np.ones(1))
+    c2, _, _ = moved.bins[key].arrays()
+    assert len(c2) == len(learner.bins[key].arrays()[0]) + 1
+    build(moved)
+    assert len(C._NODE_WEIGHTS) == 2
+    # the same number of bins, each one bin further in pi: weights of their own, not the kept ones
+    doc = learner.bins[key].to_dict()
+    doc["bins"] = [[a + 1, b, tri, vec] for a, b, tri, vec in doc["bins"]]
+    bins = learner.bins[key]
+    shifted = type(bins).from_dict(doc, bins.bin_pi, bins.bin_n)
+    args = (learner._coef(*key), learner._prior_stats[key].A + learner.stats[key].A, learner.coverage["LS"],
+            learner.s)
+    warm = C.LocalCurves(shifted, *args)
+    monkeypatch.setattr(C, "_NODE_WEIGHTS", {})
+    cold = C.LocalCurves(shifted, *args)
+    assert np.array_equal(warm.coef, cold.coef, equal_nan=True)
+    assert not np.array_equal(cold.coef, fresh.coef, equal_nan=True)
+    monkeypatch.setattr(C, "_NODE_WEIGHTS", {})
+    monkeypatch.setattr(C, "_NODE_WEIGHTS_MAX", 1)
+    build(learner), build(moved), build(learner)
+    assert len(C._NODE_WEIGHTS) == 1

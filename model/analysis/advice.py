@@ -145,10 +145,17 @@ class AdviceResult:
 
 
 def _operating_points(p: Point, params: PlantParams) -> dict:
-    """Per stage the (pi, n) arrays of an evaluation's rows."""
+    """Per stage the (pi, n) arrays of an evaluation's rows (kept with the point for these
+    parameters: the trusted path's points are the search's grid, which the scorer reads again).
+    Read them only."""
+    got = p.memo.get("operating_points")
+    if got is not None and got[0] is params:
+        return got[1]
     p_e, p_m, p_c = (p.col(c) for c in ("p_e_bar", "p_m_bar", "p_c_bar"))
-    return {"LS": (p_m / p_e, p.col("N_LS_rpm") / params.comp_LS.N_nom),
-            "HS": (p_c / p_m, p.col("N_HS_rpm") / params.comp_HS.N_nom)}
+    out = {"LS": (p_m / p_e, p.col("N_LS_rpm") / params.comp_LS.N_nom),
+           "HS": (p_c / p_m, p.col("N_HS_rpm") / params.comp_HS.N_nom)}
+    p.memo["operating_points"] = (params, out)
+    return out
 
 
 def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, points: list) -> list:
@@ -173,8 +180,14 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
 
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
-    """The intermediate pressure of an evaluation (weighted mean over its rows) [bar(g)]."""
-    return weighted_mean(p.col("p_m_bar"), w) - amb
+    """The intermediate pressure of an evaluation (weighted mean over its rows) [bar(g)] (kept
+    with the point for these weights: the search's feasibility test asks again)."""
+    got = p.memo.get("pm_barg")
+    if got is not None and got[0] is w and got[1] == amb:
+        return got[2]
+    v = weighted_mean(p.col("p_m_bar"), w) - amb
+    p.memo["pm_barg"] = (w, amb, v)
+    return v
 
 
 @dataclass(frozen=True)
@@ -317,18 +330,28 @@ def _shape_many(learner, params: PlantParams, offsets: dict, s: AdviceSettings, 
 
 def _scorer(learner, params: PlantParams, offsets: dict, s: AdviceSettings):
     """What the search maximises: the COP less ``search_k`` shape-error standard deviations
-    (None: the COP itself)."""
+    (None: the COP itself). Each point's shape error is computed once (``_shape_many`` of the
+    points not met yet: the same numbers as alone) and kept for the scorer's life: the search
+    scores its candidates again when it compares them, and the draft its optimum; ``shape(p)``
+    hands the kept ``_shape_at`` out."""
     if learner is None or not s.shape_k or not s.search_k:
         return None
+    memo: dict = {}         # id(point) -> (point, its shape error): the point is held, its id kept
+
+    def shapes(points: list) -> list:
+        new = list({id(p): p for p in points if id(p) not in memo}.values())
+        for p, u in zip(new, _shape_many(learner, params, offsets, s, new)):
+            memo[id(p)] = (p, u)
+        return [memo[id(p)][1] for p in points]
 
     def score(p: Point) -> float:
-        return p.COP * (1.0 - 0.01 * s.search_k * _shape_at(learner, params, offsets, s, p))
+        return p.COP * (1.0 - 0.01 * s.search_k * shapes([p])[0])
 
     def many(points: list) -> list:
-        """``score`` of each of ``points`` (``_shape_many``: the same numbers)."""
-        return [p.COP * (1.0 - 0.01 * s.search_k * u)
-                for p, u in zip(points, _shape_many(learner, params, offsets, s, points))]
+        """``score`` of each of ``points``."""
+        return [p.COP * (1.0 - 0.01 * s.search_k * u) for p, u in zip(points, shapes(points))]
     score.many = many
+    score.shape = lambda p: shapes([p])[0]
     return score
 
 
@@ -564,7 +587,8 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                 vals.append(100.0 * (a.COP / b.COP - 1.0))
         if len(vals) >= 2:
             sd_opt = float(np.std(vals, ddof=1))
-    shape_opt = _shape_at(learner, adaptive, offsets, s, ev.at(sp_opt))
+    p_at = ev.at(sp_opt)
+    shape_opt = score.shape(p_at) if score is not None else _shape_at(learner, adaptive, offsets, s, p_at)
     sd_opt = math.hypot(sd_opt, shape_opt)
     # low-confidence reasons that do not depend on the recommendation
     resid = dict(curve_residual or {})

@@ -633,6 +633,34 @@ def _rect_distance(q: np.ndarray, c: np.ndarray, half: np.ndarray, scale: np.nda
     return np.sqrt(g0 ** 2 + g1 ** 2)
 
 
+_NODE_WEIGHTS: dict = {}       # _node_weights' recent answers (a learner's coverage changes seldom)
+_NODE_WEIGHTS_MAX = 8
+
+
+def _node_weights(nodes: np.ndarray, cov: np.ndarray, centres: np.ndarray, h: np.ndarray,
+                  scale: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``LocalCurves``' grid weights: per node whether the data reach it (within 1.5 margins
+    ``scale`` of a covered bin's rectangle: centre ``cov``, half widths ``half``; other nodes fall
+    back to the global fit), and the Gaussian kernel weights (nodes x bin centres ``centres``,
+    bandwidths ``h``; below 1e-4 set to 0). Both depend on the grid and the bins only, which stay
+    the same from window to window most of the time, while the bins' statistics change every
+    window: the last few answers are kept (by the inputs' exact bytes: the same arrays) and
+    handed out read-only."""
+    key = tuple(a.tobytes() for a in (nodes, cov, centres, h, scale, half)) + (nodes.shape, cov.shape,
+                                                                               centres.shape)
+    got = _NODE_WEIGHTS.get(key)
+    if got is None:
+        near = _rect_distance(nodes, cov, half, scale).min(axis=1) <= 1.5
+        w_all = np.exp(-0.5 * _sq_norm(nodes, centres, h))
+        w_all[w_all < 1e-4] = 0.0
+        near.setflags(write=False)
+        w_all.setflags(write=False)
+        if len(_NODE_WEIGHTS) >= _NODE_WEIGHTS_MAX:
+            _NODE_WEIGHTS.pop(next(iter(_NODE_WEIGHTS)))
+        got = _NODE_WEIGHTS[key] = (near, w_all)
+    return got
+
+
 class LocalCurves:
     """Locally weighted quadratic curves on a grid of nodes over the covered region.
 
@@ -664,13 +692,9 @@ class LocalCurves:
         P, N = np.meshgrid(self.p0 + self.dpi * np.arange(npi), self.n0 + self.dn * np.arange(nn),
                            indexing="ij")
         nodes = np.column_stack([P.ravel(), N.ravel()])
-        # nodes the data reaches (within a margin of a covered bin); others fall back to global
-        scale = np.array([s.margin_pi, s.margin_n])
-        half = 0.5 * np.array([coverage.bin_pi, coverage.bin_n])
-        near = _rect_distance(nodes, cov, half, scale).min(axis=1) <= 1.5
+        near, w_all = _node_weights(nodes, cov, centres, h, np.array([s.margin_pi, s.margin_n]),
+                                    0.5 * np.array([coverage.bin_pi, coverage.bin_n]))
         coef = np.full((len(nodes), 6), np.nan)
-        w_all = np.exp(-0.5 * _sq_norm(nodes, centres, h))
-        w_all[w_all < 1e-4] = 0.0
         G = global_A / max(np.trace(global_A) / 6.0, 1e-300)      # normalised global precision
         # all nodes at once: the weighted bin statistics (k, 6, 6) and (k, 6), then one batched solve
         k_near = np.flatnonzero(near)

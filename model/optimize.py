@@ -38,6 +38,7 @@ sample that stops solving at a candidate set point makes that candidate infeasib
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 import time
@@ -244,6 +245,7 @@ class Evaluator:
         self.evals = 0
         self.solves = 0
         self._cache: dict[float | None, Point] = {}
+        self._warm_keys: list[float] = []   # the cached set points whose points hold a solver result, sorted
         self._in: InputColumns | None = None
         self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
         self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
@@ -342,6 +344,8 @@ class Evaluator:
         if todo:
             for k, p in zip(todo, self._solve_v(todo, np.arange(len(self.rows)))):
                 self._cache[k] = p
+                if k is not None:
+                    bisect.insort(self._warm_keys, k)
         return [self._cache[k] for k in keys]
 
     def _solve_v(self, sps: list, idx: np.ndarray) -> list[Point]:
@@ -376,31 +380,39 @@ class Evaluator:
         return self._in
 
     def _guess_for(self, sp):
-        """(VResult, row index into it) to start set point ``sp`` from: this evaluator's own at the
-        nearest set point within GUESS_BAR, else the other evaluator's (``guess_from``: other
-        parameters) at the same or nearest one, else the seed evaluator's (other rows, each row
-        from the nearest) likewise; None when there is none. For None (the rows' own set points)
-        only another evaluator's own set points serve."""
+        """(warm-start state, its rows, row index into it) to start set point ``sp`` from: this
+        evaluator's own solution at the nearest set point within GUESS_BAR, else the other
+        evaluator's (``guess_from``: other parameters) at the same or nearest one, else the seed
+        evaluator's (other rows, each row from the nearest) likewise; None when there is none. For
+        None (the rows' own set points) only another evaluator's own set points serve."""
         for ev, rmap in ((self, None), (self._other, None), (self._seed, self._seed_map)):
             if ev is None:
                 continue
             if sp is None:
                 p = ev._cache.get(None)
-                if p is not None and p.vres is not None and ev is not self:
-                    return p.vres, (np.arange(len(p.vres)) if rmap is None else rmap)
+                if p is not None and p.has_vres and ev is not self:
+                    st, m = _state_of(p)
+                    return st, m, (np.arange(m) if rmap is None else rmap)
                 continue
-            near = [(abs(x - sp), x) for x in ev._cache if x is not None and abs(x - sp) <= GUESS_BAR
-                    and ev._cache[x].has_vres]
+            # the nearest cached set point with a solver result (of the two beside sp: the
+            # distances of set points on one side grow with their distance, ties go to the
+            # smaller set point as before)
+            keys = ev._warm_keys
+            i = bisect.bisect_left(keys, sp)
+            near = [(abs(x - sp), x) for x in keys[max(i - 1, 0):i + 1] if abs(x - sp) <= GUESS_BAR]
             if near:
-                v = ev._cache[min(near)[1]].vres
-                return v, (np.arange(len(v)) if rmap is None else rmap)
+                st, m = _state_of(ev._cache[min(near)[1]])
+                return st, m, (np.arange(m) if rmap is None else rmap)
         return None
 
     def _guesses(self, sps: list, idx: np.ndarray):
-        """(guess VResult, guess_index) for solve_many over ``sps`` x rows ``idx``, or (None,
-        None) when no set point has a solved neighbour. Only whole-row evaluations serve."""
+        """(guess, guess_index) for solve_many over ``sps`` x rows ``idx`` (the guess a
+        ``model.vcycle.WarmStart``: the neighbours' warm-start states, which is all the solver
+        reads of a VResult guess), or (None, None) when no set point has a solved neighbour. Only
+        whole-row evaluations serve."""
         if len(idx) != len(self.rows):
             return None, None
+        from .vcycle import WarmStart
         n = len(idx)
         parts, index, base = [], [], 0
         for sp in sps:
@@ -408,12 +420,33 @@ class Evaluator:
             if g is None:
                 index.append(np.full(n, -1))
             else:
-                parts.append(g[0])
-                index.append(base + g[1])
-                base += len(g[0])
+                parts.append(g[:2])
+                index.append(base + g[2])
+                base += g[1]
         if not parts:
             return None, None
-        return _concat(parts), np.concatenate(index)
+        if len(parts) == 1:
+            return WarmStart(*parts[0]), index[0] if len(index) == 1 else np.concatenate(index)
+        # the states stacked as ``_concat`` stacks VResults' dicts: the per-row arrays (by the
+        # first part's rows) one after the other, anything else the first part's
+        m0 = parts[0][1]
+        state = {k: (np.concatenate([st[k] for st, _ in parts])
+                     if isinstance(a, np.ndarray) and a.shape[:1] == (m0,) else a)
+                 for k, a in parts[0][0].items()}
+        return WarmStart(state, base), np.concatenate(index)
+
+
+def _state_of(p: Point) -> tuple[dict, int]:
+    """(``p.vres.state``, ``len(p.vres)``) without taking the point's rows of its call's result when
+    they are not taken yet: the state's per-row arrays sliced to them (the same numbers as
+    ``take_rows``' copies)."""
+    v = p._vres
+    if type(v) is tuple:
+        whole, a, b = v
+        m = len(whole)
+        return {k: (x[a:b] if isinstance(x, np.ndarray) and x.shape[:1] == (m,) else x)
+                for k, x in whole.state.items()}, b - a
+    return v.state, len(v)
 
 
 def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: list, R_th_f,
@@ -573,8 +606,8 @@ def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: "dict | PartColu
     if not ok.all():
         return Point(x, math.nan, math.nan, math.nan, False, frame, cols=cols, index=index)
     sat = bool(get("hs_saturated").min() > 0.5)
-    return Point(x, float((w * Q).sum() / (w * W).sum()), float((w * Q).sum() / w.sum()),
-                 float((w * W).sum() / w.sum()), sat, frame, cols=cols, index=index)
+    wQ, wW, ws = (w * Q).sum(), (w * W).sum(), w.sum()      # (each once: the same sums)
+    return Point(x, float(wQ / wW), float(wQ / ws), float(wW / ws), sat, frame, cols=cols, index=index)
 
 
 def search(ev: Evaluator, lo: float, hi: float, coarse_step: float = COARSE_STEP,

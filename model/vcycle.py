@@ -215,6 +215,17 @@ def _inputs(rows, p_m_sp, amb_bar: float):
     return cols
 
 
+@dataclass(frozen=True)
+class WarmStart:
+    """Earlier solutions' warm-start state (``VResult.state``: per row, in SI) to start a call from:
+    what ``solve_many(guess=...)`` reads of a VResult guess, without its outputs (``n`` rows)."""
+    state: dict
+    n: int
+
+    def __len__(self) -> int:
+        return self.n
+
+
 def solve_many(rows: "pd.DataFrame | InputColumns", params: PlantParams, p_m_sp=None, ls_mode: str = "flag",
                force_scalar=None, guess: "VResult | None" = None, guess_index=None, R_th_f=None,
                cond_factor=None, deltas: dict | None = None) -> VResult:
@@ -225,7 +236,7 @@ def solve_many(rows: "pd.DataFrame | InputColumns", params: PlantParams, p_m_sp=
     to solve with the scalar path regardless (for comparisons). Returns a ``VResult`` with the keys
     of ``model.batch.OUTPUT_KEYS`` and ``EXTRA_KEYS``.
 
-    guess : VResult, optional
+    guess : VResult or WarmStart, optional
         A previous result with a nearby solution of every row (same row order; or ``guess_index``):
         rows start from it on the warm path (``model.vwarm``: Newton on the guessed branch, then the
         scalar solver's branch checks); rows it cannot settle take the cold path. The answers are

@@ -673,3 +673,75 @@ def test_local_curves_from_kept_node_weights_are_the_computed_ones(learned, plan
     monkeypatch.setattr(C, "_NODE_WEIGHTS_MAX", 1)
     build(learner), build(moved), build(learner)
     assert len(C._NODE_WEIGHTS) == 1
+
+
+def _guesses_as_results(ev, sps):
+    """``Evaluator._guesses`` as it was written: the nearest cached point by a scan of the whole
+    cache, its VResult taken, the VResults stacked (``_concat``)."""
+    from model.optimize import GUESS_BAR, _concat
+    n = len(ev.rows)
+    parts, index, base = [], [], 0
+    for sp in sps:
+        got = None
+        for e, rmap in ((ev, None), (ev._other, None), (ev._seed, ev._seed_map)):
+            if e is None:
+                continue
+            if sp is None:
+                p = e._cache.get(None)
+                if p is not None and p.vres is not None and e is not ev:
+                    got = p.vres, (np.arange(len(p.vres)) if rmap is None else rmap)
+                    break
+                continue
+            near = [(abs(x - sp), x) for x in e._cache if x is not None and abs(x - sp) <= GUESS_BAR
+                    and e._cache[x].has_vres]
+            if near:
+                v = e._cache[min(near)[1]].vres
+                got = v, (np.arange(len(v)) if rmap is None else rmap)
+                break
+        if got is None:
+            index.append(np.full(n, -1))
+        else:
+            parts.append(got[0])
+            index.append(base + got[1])
+            base += len(got[0])
+    return (_concat(parts), np.concatenate(index)) if parts else (None, None)
+
+
+def test_a_guess_of_warm_start_states_is_the_guess_of_whole_results(learned, plant):
+    """The optimizer's warm starts as the neighbours' states (``WarmStart``, found by bisection in
+    the sorted set points) are the states and rows of the VResults the whole-cache scan found, and
+    the solver answers the same with either."""
+    from model.vcycle import WarmStart
+    data, _, ev, _ = learned
+    fresh = Evaluator(ev.rows, ev.w, plant, guess_from=ev)       # the other evaluator's points
+    fresh.at_many([10.25, 15.0])                                  # and some of its own
+    seeded = Evaluator(data[list(INPUT_COLUMNS)].iloc[::9].reset_index(drop=True),
+                       np.ones(len(data.iloc[::9])), plant, guess_from=ev)   # other rows: the seed's map
+    sets = [[None], [8.0], [8.5], [8.5 + 1e-9, 7.2, 19.9, 20.99, 21.5], [10.25, 9.9, 14.4, 15.6, 30.0],
+            [None, 13.37, 12.5, 16.0 - 1e-9]]
+    checked = 0
+    for e in (ev, fresh, seeded):
+        idx = np.arange(len(e.rows))
+        for sps in sets:
+            new, gi_new = e._guesses(sps, idx)
+            old, gi_old = _guesses_as_results(e, sps)
+            if old is None:
+                assert new is None and gi_new is None
+                continue
+            assert isinstance(new, WarmStart) and len(new) == len(old)
+            assert np.array_equal(gi_new, gi_old)
+            assert list(new.state) == list(old.state)
+            for k in old.state:
+                assert np.array_equal(new.state[k], old.state[k], equal_nan=True), k
+            checked += 1
+    assert checked >= 10
+    e = fresh
+    sps = [8.5, 12.3, 17.75]
+    new, gi = e._guesses(sps, np.arange(len(e.rows)))
+    old, gi_old = _guesses_as_results(e, sps)
+    rows = e._input_columns().take(np.tile(np.arange(len(e.rows)), len(sps)))
+    sp_all = np.repeat(np.array(sps), len(e.rows))
+    a = solve_many(rows, plant, p_m_sp=sp_all, ls_mode="float", guess=new, guess_index=gi)
+    b = solve_many(rows, plant, p_m_sp=sp_all, ls_mode="float", guess=old, guess_index=gi_old)
+    assert a.warm_rows > 0
+    pd.testing.assert_frame_equal(a.frame(), b.frame(), check_exact=True)

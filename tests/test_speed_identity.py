@@ -745,3 +745,30 @@ def test_a_guess_of_warm_start_states_is_the_guess_of_whole_results(learned, pla
     b = solve_many(rows, plant, p_m_sp=sp_all, ls_mode="float", guess=old, guess_index=gi_old)
     assert a.warm_rows > 0
     pd.testing.assert_frame_equal(a.frame(), b.frame(), check_exact=True)
+
+
+def test_shape_scores_of_points_of_different_row_counts_are_each_alone(learned, plant):
+    """``_shape_many`` over points of 8 and of 5 rows: each point's mean over its own rows, the
+    number a call for the point alone gives (and, alone, the written-out form's)."""
+    data, learner, ev, pts = learned
+    rows5, w5 = representative(data[list(INPUT_COLUMNS)].astype(float), 5)
+    ev5 = Evaluator(rows5, w5, plant)
+    pts5 = ev5.at_many([None, 9.0, 12.0, 15.0, 18.0])
+    offsets = {"LS": (0.01, -0.02), "HS": (0.0, 0.01)}
+    s = AdviceSettings()
+    mixed = [pts[1], pts5[0], pts[4], pts5[2], pts5[3], pts[7], pts5[4]]
+    assert {len(p.col("W_LS_kW")) for p in mixed} == {5, 8} and sum(p.ok for p in mixed) >= 5
+    many = _shape_many(learner, plant, offsets, s, mixed)
+    assert many == [_shape_many(learner, plant, offsets, s, [p])[0] for p in mixed]
+    for p, u in zip(mixed, many):
+        if not p.ok:
+            assert u == 0.0
+            continue
+        W = {st: p.col(f"W_{st}_kW") for st in ("LS", "HS")}
+        var = np.zeros(len(W["LS"]))
+        for st in ("LS", "HS"):
+            if learner.learned(st, "eta_is"):
+                pi, n = _operating_points(p, plant)[st]
+                u_st = s.shape_k * learner.shape_sd(st, pi - offsets[st][0], n - offsets[st][1])
+                var += (W[st] / (W["LS"] + W["HS"]) * u_st / p.col(f"eta_is_{st}")) ** 2
+        assert u == float(100.0 * np.mean(np.sqrt(var)))

@@ -174,8 +174,7 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
             pi = np.concatenate([o[st][0] for o in ops])
             n = np.concatenate([o[st][1] for o in ops])
             dist = learner.coverage_distance(st, pi - d_pi, n - d_n)
-            for k in range(len(points)):
-                d[k] = max(d[k], float(np.max(dist[bounds[k]:bounds[k + 1]])))
+            d = np.maximum(d, np.maximum.reduceat(dist, bounds[:-1]))   # each point's rows' largest
     return [float(x) for x in d]
 
 
@@ -323,8 +322,15 @@ def _shape_many(learner, params: PlantParams, offsets: dict, s: AdviceSettings, 
         eta = np.concatenate([p.col(f"eta_is_{st}") for p in ok])
         var += (W[st] / tot * u / eta) ** 2
     sd = np.sqrt(var)
-    bounds = np.concatenate([[0], np.cumsum([len(p.col("W_LS_kW")) for p in ok])])
-    got = iter([float(100.0 * np.mean(sd[bounds[k]:bounds[k + 1]])) for k in range(len(ok))])
+    sizes = [len(p.col("W_LS_kW")) for p in ok]
+    if len(set(sizes)) == 1:
+        # rows of one length: each point's mean as a row of a 2-D array (numpy's reduction over a
+        # contiguous last axis adds each row as it adds the same values in a 1-D array of their own)
+        means = (100.0 * np.mean(sd.reshape(len(ok), sizes[0]), axis=1)).tolist()
+    else:
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        means = [float(100.0 * np.mean(sd[bounds[k]:bounds[k + 1]])) for k in range(len(ok))]
+    got = iter(means)
     return [next(got) if p.ok else 0.0 for p in points]
 
 

@@ -427,8 +427,8 @@ class Evaluator:
             return None, None
         if len(parts) == 1:
             return WarmStart(*parts[0]), index[0] if len(index) == 1 else np.concatenate(index)
-        # the states stacked as ``_concat`` stacks VResults' dicts: the per-row arrays (by the
-        # first part's rows) one after the other, anything else the first part's
+        # the states stacked as whole VResults' dicts were: the per-row arrays (by the first
+        # part's rows) one after the other, anything else the first part's
         m0 = parts[0][1]
         state = {k: (np.concatenate([st[k] for st, _ in parts])
                      if isinstance(a, np.ndarray) and a.shape[:1] == (m0,) else a)
@@ -493,26 +493,6 @@ def nearest_rows(rows, other) -> np.ndarray:
     sd = np.where(sd > 0, sd, 1.0)
     d = (((a[:, None, :] - b[None, :, :]) / sd) ** 2).sum(axis=2)
     return np.argmin(np.nan_to_num(d, nan=np.inf), axis=1).astype(int)
-
-
-def _concat(vs: list):
-    """VResults of the same fields stacked row-wise."""
-    if len(vs) == 1:
-        return vs[0]
-    n = [len(v) for v in vs]
-    kw = {}
-    for f in dataclasses.fields(vs[0]):
-        vals = [getattr(v, f.name) for v in vs]
-        a = vals[0]
-        if isinstance(a, np.ndarray) and a.shape[:1] == (n[0],):
-            kw[f.name] = np.concatenate(vals)
-        elif isinstance(a, dict):
-            kw[f.name] = {k: (np.concatenate([d[k] for d in vals])
-                              if isinstance(b, np.ndarray) and b.shape[:1] == (n[0],) else b)
-                          for k, b in a.items()}
-        else:
-            kw[f.name] = a
-    return type(vs[0])(**kw)
 
 
 def _take(v, idx: np.ndarray):

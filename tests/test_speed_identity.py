@@ -4,6 +4,7 @@ first read, the trusted stretch's distances and the search's shape scores for ma
 call, the forecast's phi for many k at once, the sample usability without a Python loop."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import pickle
 from dataclasses import replace
@@ -677,8 +678,26 @@ def test_local_curves_from_kept_node_weights_are_the_computed_ones(learned, plan
 
 def _guesses_as_results(ev, sps):
     """``Evaluator._guesses`` as it was written: the nearest cached point by a scan of the whole
-    cache, its VResult taken, the VResults stacked (``_concat``)."""
-    from model.optimize import GUESS_BAR, _concat
+    cache, its VResult taken, the VResults stacked (``_concat``, as it was)."""
+    from model.optimize import GUESS_BAR
+
+    def _concat(vs: list):
+        if len(vs) == 1:
+            return vs[0]
+        n = [len(v) for v in vs]
+        kw = {}
+        for f in dataclasses.fields(vs[0]):
+            vals = [getattr(v, f.name) for v in vs]
+            a = vals[0]
+            if isinstance(a, np.ndarray) and a.shape[:1] == (n[0],):
+                kw[f.name] = np.concatenate(vals)
+            elif isinstance(a, dict):
+                kw[f.name] = {k: (np.concatenate([d[k] for d in vals])
+                                  if isinstance(b, np.ndarray) and b.shape[:1] == (n[0],) else b)
+                              for k, b in a.items()}
+            else:
+                kw[f.name] = a
+        return type(vs[0])(**kw)
     n = len(ev.rows)
     parts, index, base = [], [], 0
     for sp in sps:

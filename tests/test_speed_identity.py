@@ -791,3 +791,42 @@ def test_shape_scores_of_points_of_different_row_counts_are_each_alone(learned, 
                 u_st = s.shape_k * learner.shape_sd(st, pi - offsets[st][0], n - offsets[st][1])
                 var += (W[st] / (W["LS"] + W["HS"]) * u_st / p.col(f"eta_is_{st}")) ** 2
         assert u == float(100.0 * np.mean(np.sqrt(var)))
+
+
+def test_the_kept_node_weights_stay_bounded_and_right_under_threads(learned, monkeypatch):
+    """Replays in threads of one process (a cluster's worker with several threads) share the kept
+    grid weights: four threads building local curves of two sets of bins get their own curves
+    every time, and the cache stays within its bound. (The eviction's race, which the lock
+    excludes, is too narrow under the GIL for a test to show; this checks the answers.)"""
+    import threading
+    import model.analysis.compressors as C
+    _, learner, _, _ = learned
+    key = ("LS", "eta_is")
+    bins = learner.bins[key]
+    doc = bins.to_dict()
+    doc["bins"] = [[a + 1, b, tri, vec] for a, b, tri, vec in doc["bins"]]
+    sets = [bins, type(bins).from_dict(doc, bins.bin_pi, bins.bin_n)]
+    args = (learner._coef(*key), learner._prior_stats[key].A + learner.stats[key].A, learner.coverage["LS"],
+            learner.s)
+    monkeypatch.setattr(C, "_NODE_WEIGHTS", {})
+    want = [C.LocalCurves(b, *args).coef for b in sets]
+    monkeypatch.setattr(C, "_NODE_WEIGHTS", {})
+    monkeypatch.setattr(C, "_NODE_WEIGHTS_MAX", 1)          # every other build evicts
+    bad, errors = [], []
+
+    def work(j):
+        try:
+            for i in range(40):
+                k = (i + j) % 2
+                if not np.array_equal(C.LocalCurves(sets[k], *args).coef, want[k], equal_nan=True):
+                    bad.append((j, i))
+        except Exception as exc:          # noqa: BLE001 - reported below
+            errors.append(repr(exc))
+    threads = [threading.Thread(target=work, args=(j,)) for j in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not any(t.is_alive() for t in threads)
+    assert errors == [] and bad == []
+    assert len(C._NODE_WEIGHTS) == 1

@@ -635,6 +635,7 @@ def _rect_distance(q: np.ndarray, c: np.ndarray, half: np.ndarray, scale: np.nda
 
 _NODE_WEIGHTS: dict = {}       # _node_weights' recent answers (a learner's coverage changes seldom)
 _NODE_WEIGHTS_MAX = 8
+_NODE_WEIGHTS_LOCK = threading.Lock()   # (a cluster's worker may run several replays in threads)
 
 
 def _node_weights(nodes: np.ndarray, cov: np.ndarray, centres: np.ndarray, h: np.ndarray,
@@ -655,9 +656,11 @@ def _node_weights(nodes: np.ndarray, cov: np.ndarray, centres: np.ndarray, h: np
         w_all[w_all < 1e-4] = 0.0
         near.setflags(write=False)
         w_all.setflags(write=False)
-        if len(_NODE_WEIGHTS) >= _NODE_WEIGHTS_MAX:
-            _NODE_WEIGHTS.pop(next(iter(_NODE_WEIGHTS)))
-        got = _NODE_WEIGHTS[key] = (near, w_all)
+        got = (near, w_all)
+        with _NODE_WEIGHTS_LOCK:
+            while len(_NODE_WEIGHTS) >= _NODE_WEIGHTS_MAX:
+                _NODE_WEIGHTS.pop(next(iter(_NODE_WEIGHTS)))
+            _NODE_WEIGHTS[key] = got
     return got
 
 

@@ -321,3 +321,133 @@ def test_a_column_reads_as_its_cells_one_by_one(cells, decimal):
         else:
             assert num.dtype == np.float64
             assert np.array_equal(num.view(np.int64), want.view(np.int64)), (src, num, want)
+
+
+# ---- the clean-file fast path (one C parse) against the row-by-row reading ------------------------
+_NUMBER = st.one_of(st.floats(allow_nan=False, allow_infinity=False).map(repr),
+                    st.integers(-10**15, 10**15).map(str),
+                    st.decimals(allow_nan=False, allow_infinity=False, places=7).map(str),
+                    st.sampled_from(["0", "-0", "007", ".5", "5.", "1e5", "1.5E-3", " 2.5", "3 ",
+                                     "9223372036854775807", "-9223372036854775808"]))
+_MESSY = st.sampled_from(["", " ", "nan", "NaN", "n/a", "x", "1_0", "\u0661", "1.2.3", "inf", "-inf",
+                          "Infinity", "+nan", "1.5\x1f", "9223372036854775808", "1e400", '"4"', "TRUE",
+                          "0x10", "1d5"])
+
+
+@st.composite
+def _history_text(draw):
+    """A history file's text: mostly clean (the fast path's case), or with any of the things the
+    row-by-row reading handles (messy cells, bad/duplicate/unsorted/offset timestamps, ragged rows,
+    blank lines, CRLF, quotes, a quality column, a header after blank lines)."""
+    clean = draw(st.booleans())
+    sep = draw(st.sampled_from([",", ";", "\t"]))
+    names = ["timestamp", "a", "b"] + (["quality"] if draw(st.booleans()) else [])
+    n = draw(st.integers(0 if not clean else 1, 12))
+    mins = draw(st.lists(st.integers(0, 59), min_size=n, max_size=n))
+    lines = []
+    for i, m in enumerate(mins):
+        ts = f"2024-03-01T00:{m:02d}:00Z"
+        if not clean:
+            ts = draw(st.sampled_from([ts, f"2024-03-01 00:{m:02d}", f"2024-03-01T01:{m:02d}:00+01:00",
+                                       f"2024-03-01T00:{m:02d}:00.5Z", "2024-13-01T00:00Z", " " + ts]))
+        cells = [ts, draw(_NUMBER if clean else st.one_of(_NUMBER, _MESSY)),
+                 draw(_NUMBER if clean else st.one_of(_NUMBER, _MESSY))]
+        if "quality" in names:
+            cells.append(draw(st.sampled_from(["", "good", "stale", " bad "])))
+        if not clean and draw(st.integers(0, 9)) == 0:
+            cells = cells[:-1] if draw(st.booleans()) else cells + ["9"]       # ragged
+        lines.append(sep.join(cells))
+        if draw(st.integers(0, 9)) == 0:
+            lines.append(draw(st.sampled_from(["", "   "])))                   # blank lines
+    head = sep.join(names)
+    if not clean and draw(st.integers(0, 9)) == 0:
+        head = "\n" + head
+    eol = draw(st.sampled_from(["\n", "\r\n"]))
+    return head + eol + eol.join(lines) + (eol if draw(st.booleans()) else "")
+
+
+def _same_reading(a, b):
+    pd.testing.assert_frame_equal(a.frame, b.frame, check_exact=True)
+    for f in ("skipped", "non_numeric", "first_non_numeric", "first_bad_timestamp", "first_ragged",
+              "sep", "decimal"):
+        assert getattr(a, f) == getattr(b, f), f
+
+
+@settings(max_examples=400, deadline=None)
+@given(_history_text())
+def test_a_clean_file_in_one_parse_reads_as_row_by_row(tmp_path_factory, text):
+    """The fast path (pandas' C reader on a clean file) gives what the row-by-row reading gives —
+    frame and dtypes to the bit, rows skipped, cells that are not numbers and where — or is not
+    taken; an error is the same error."""
+    import edge.io.history as hist
+    path = tmp_path_factory.mktemp("h") / "h.csv"
+    path.write_bytes(text.encode("utf-8"))
+    try:
+        slow_err, slow = None, None
+        hist.FAST_PATH = False
+        try:
+            slow = read_history(path, required=())
+        except HistoryError as exc:
+            slow_err = str(exc)
+    finally:
+        hist.FAST_PATH = True
+    try:
+        fast = read_history(path, required=())
+    except HistoryError as exc:
+        assert str(exc) == slow_err
+        return
+    assert slow_err is None
+    _same_reading(fast, slow)
+
+
+def test_a_clean_export_takes_the_fast_path_and_reads_the_same(clean_csv, tmp_path, monkeypatch):
+    """The simulator's export (and its CRLF form) is clean: read without the row-by-row reader
+    at all, the same History as with it."""
+    import edge.io.history as hist
+    crlf = tmp_path / "crlf.csv"
+    crlf.write_bytes(clean_csv.read_bytes().replace(b"\n", b"\r\n"))
+    for path in (clean_csv, crlf):
+        monkeypatch.setattr(hist, "FAST_PATH", False)
+        slow = read_history(path)
+        monkeypatch.setattr(hist, "FAST_PATH", True)
+
+        def no_rows(*a, **k):
+            raise AssertionError("the row-by-row reader was used")
+        monkeypatch.setattr(hist, "_rows", no_rows)
+        fast = read_history(path)
+        monkeypatch.undo()
+        _same_reading(fast, slow)
+        assert len(fast.frame) == 60
+
+
+@pytest.mark.parametrize("text", [
+    "timestamp,a,b\n2024-03-01T00:00Z,1,2\n2024-03-01T00:01Z,1,2,3\n",        # a long row
+    "timestamp,a,b\n2024-03-01T00:00Z,1,2,3\n2024-03-01T00:01Z,1,2,3\n",      # every row long
+    "timestamp,a,b\n2024-03-01T00:00Z,1\n2024-03-01T00:01Z,1,2\n",            # a short row
+    "timestamp,a,b\n2024-03-01T00:00Z,1,2\n2024-13-01T00:01Z,1,2\n",          # a bad timestamp
+    "timestamp,a,b\n2024-03-01T00:00Z,1,NULL\n2024-03-01T00:01Z,1,2\n",       # a missing-value text
+    "timestamp,a,b\n2024-03-01T00:00Z,1,2\r2024-03-01T00:01Z,1,2\r",          # lone carriage returns
+    'timestamp,a,b\n2024-03-01T00:00Z,"1",2\n',                                # quotes
+    "timestamp,a,b\n2024-03-01T00:00Z,1,inf\n",                                # not finite
+    "timestamp,a,quality\n2024-03-01T00:00Z,1\n2024-03-01T00:01Z,2,good\n",   # a row without its quality
+    "timestamp,a,b\n2024-03-01T00:00Z,1,2\n,,\n2024-03-01T00:01Z,1,2\n",      # a row of empty cells
+])
+def test_files_that_are_not_clean_take_the_row_by_row_reading(tmp_path, monkeypatch, text):
+    """Each of these leaves the fast path (``_clean_file`` is None) and is read row by row."""
+    import edge.io.history as hist
+    from edge.io.history import _clean_file, detect_format
+    sep, decimal, at = detect_format(text)
+    assert _clean_file(text, sep, decimal, at, ()) is None
+
+
+def test_the_fast_path_reads_numbers_correctly_rounded(tmp_path, monkeypatch):
+    """Numbers pandas' default converter rounds wrongly (``test_cells_are_read_as_python_reads_a_
+    number``) in a clean file: the fast path takes it and reads them as Python's float does."""
+    import edge.io.history as hist
+    a = ["59.378800835e-65", "749410988.31818085921323796459658616836269987", "2.2250738585072011e-308",
+         "0.1000000000000000055511151231257827021181583404541015625", "1.5"]
+    p = tmp_path / "round.csv"
+    p.write_text("timestamp,a\n" + "".join(f"2024-03-01T00:{i:02d}:00Z,{c}\n" for i, c in enumerate(a)))
+    monkeypatch.setattr(hist, "_rows", lambda *a, **k: (_ for _ in ()).throw(AssertionError("row by row")))
+    got = read_history(p, required=()).frame["a"].to_numpy()
+    assert np.array_equal(got.view(np.int64), np.array([float(c) for c in a]).view(np.int64))

@@ -374,7 +374,10 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
     out["history_generation_s"] = time.perf_counter() - t
     out["plant"] = entry.name
     params = load_plant(entry.plant)
-    h = read_history(entry.history).frame
+    c = time.process_time()
+    hist = read_history(entry.history)
+    read_cpu = time.process_time() - c
+    h = hist.frame
     marks: list[tuple[int, float]] = []
     c0 = time.process_time()
 
@@ -388,6 +391,19 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
     res = replay(h, params, settings, progress=tick)
     wall, cpu = time.perf_counter() - t, time.process_time() - c
     n = len(res.windows)
+    # what a fleet task does besides the replay: the plant's directory written (as
+    # edge.fleet.write_plant_dir does), into a scratch directory
+    import shutil
+    import tempfile
+    from edge.replaydir import write_replay_dir
+    scratch = Path(tempfile.mkdtemp(prefix="plant-year-", dir=work))
+    try:
+        c = time.process_time()
+        write_replay_dir(res, scratch / entry.name, {"plant": entry.plant, "history": entry.history, "fleet": True},
+                         "\n".join(hist.report_lines(entry.history)))
+        write_cpu = time.process_time() - c
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     # CPU per window in each quarter of the windows (the initial calibration, before the first
     # window, in none of them); the quarters end on a lockstep chunk's last window (the windows of a
     # chunk come out together)
@@ -399,17 +415,22 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
         if b > a and a in at and b in at:
             quarters.append((at[b] - at[a]) / (b - a))
     per_window = cpu / max(n, 1)
+    task_cpu = read_cpu + cpu + write_cpu
+    task_per_window = task_cpu / max(n, 1)
     windows_per_day = n / days
-    year_s = 365.0 * windows_per_day * per_window
+    year_s = 365.0 * windows_per_day * task_per_window
     out.update({"rows": int(len(h)), "windows": n, "windows_ok": int((res.windows["status"] == "ok").sum()),
                 "wall_s": wall, "cpu_s": cpu, "cpu_s_per_window": per_window,
+                "read_history_cpu_s": read_cpu, "write_dir_cpu_s": write_cpu,
+                "task_cpu_s": task_cpu, "task_cpu_s_per_window": task_per_window,
                 "cpu_s_per_window_by_quarter": quarters,
                 "last_to_first_quarter": (quarters[-1] / quarters[0]) if len(quarters) == 4 else None,
                 "speed_kernel": speed_kernel(), "windows_per_plant_day": windows_per_day,
                 "max_rss_mb": _max_rss_mb(),
                 "extrapolation": {
-                    "how": "100 plant-years on 16 workers from this plant-year's CPU per window: 100 x 365 x "
-                           "windows per plant-day x CPU-s per window / 16 (windows spread evenly), and "
+                    "how": "100 plant-years on 16 workers from this plant-year's fleet task (the history "
+                           "read, the replay, the plant's directory written) per window: 100 x 365 x "
+                           "windows per plant-day x task CPU-s per window / 16 (windows spread evenly), and "
                            "ceil(100/16) plant-years in a row per worker (one task per plant)",
                     "windows_spread_evenly_min": 100 * year_s / 16 / 60.0,
                     "one_task_per_plant_min": math.ceil(100 / 16) * year_s / 60.0}})

@@ -267,15 +267,20 @@ def test_samples_carry_the_models_evaporating_pressure(result):
 
 def test_plant_year_bench_runs_and_adds_up(tmp_path):
     """``hp-edge bench --only plant_year`` on a short history: every window replayed, its CPU per
-    window the total over the windows, the quarters' costs in the same range, the arithmetic of the
-    extrapolation as stated."""
+    window the total over the windows, the quarters' costs in the same range, the fleet task's
+    cost the history's reading, the replay and the directory's writing, the arithmetic of the
+    extrapolation as stated (from the task's cost)."""
     from edge.bench_fleet import bench_plant_year
     out = bench_plant_year(days=1.5, work_dir=tmp_path)
     assert out["windows"] >= 15 and out["windows_ok"] >= out["windows"] - 2
     assert out["cpu_s_per_window"] == pytest.approx(out["cpu_s"] / out["windows"])
     q = out["cpu_s_per_window_by_quarter"]
     assert 1 <= len(q) <= 4 and all(0 < x < 20 * out["cpu_s_per_window"] for x in q)
-    year_s = 365 * out["windows_per_plant_day"] * out["cpu_s_per_window"]
+    assert out["read_history_cpu_s"] > 0 and out["write_dir_cpu_s"] > 0
+    assert out["task_cpu_s"] == pytest.approx(out["read_history_cpu_s"] + out["cpu_s"] + out["write_dir_cpu_s"])
+    assert out["task_cpu_s_per_window"] == pytest.approx(out["task_cpu_s"] / out["windows"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["histories"]     # the scratch directory gone
+    year_s = 365 * out["windows_per_plant_day"] * out["task_cpu_s_per_window"]
     assert out["extrapolation"]["one_task_per_plant_min"] == pytest.approx(7 * year_s / 60)
     assert out["extrapolation"]["windows_spread_evenly_min"] == pytest.approx(100 * year_s / 16 / 60)
     assert out["pass"]["plant_years_100_on_16_workers"] is (7 * year_s / 60 <= 10.0)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 REPLAY_FILES = ("windows.csv", "cip.csv", "forecast.csv", "samples.csv", "summary.txt", "compressors.json",
                 "meta.json")
 
@@ -40,14 +42,36 @@ def write_replay_dir(res, out: str | os.PathLike, meta: dict | None = None,
     return text
 
 
+CSV_CHUNK_ROWS = 65536      # rows formatted and written at a time
+
+
 def frame_to_csv(frame, path, float_format: str = "%.10g") -> None:
     """``frame.to_csv(path, index=False, float_format=float_format)`` to the byte, with the float
     columns formatted here: pandas formats each value through three Python calls, ~1.5 us, and a
-    plant-year's samples.csv holds ~7 million of them (a missing value is an empty field, as
-    pandas writes it)."""
-    out = frame.copy(deep=False)
+    plant-year's samples.csv holds ~10 million of them (a missing value is an empty field, as
+    pandas writes it). CSV_CHUNK_ROWS rows at a time: the formatted strings of a plant-year's
+    samples at once took ~600 MB, more than the replay itself. A column pandas formats by what all
+    its values hold (times: the date alone when every one is a midnight) is formatted as a whole
+    first, as pandas would."""
+    cols = []
     for i in range(frame.shape[1]):
         col = frame.iloc[:, i]
-        if col.dtype.kind == "f":
-            out.isetitem(i, [float_format % v if v == v else "" for v in col.tolist()])
-    out.to_csv(path, index=False)
+        k = col.dtype.kind
+        if k in "Mm" and len(frame) > CSV_CHUNK_ROWS:        # (pandas' to_csv's own text of it)
+            text = col.to_frame().to_csv(index=False, header=False, lineterminator="\n")
+            vals = np.array(text.split("\n")[:-1], dtype=object)
+            vals[vals == '""'] = ""         # a missing time: a lone empty field is quoted
+            cols.append(vals)
+        else:
+            cols.append(None)
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        for a in range(0, max(len(frame), 1), CSV_CHUNK_ROWS):
+            part = frame.iloc[a:a + CSV_CHUNK_ROWS]
+            out = part.copy(deep=False)
+            for i in range(frame.shape[1]):
+                col = part.iloc[:, i]
+                if cols[i] is not None:
+                    out.isetitem(i, cols[i][a:a + CSV_CHUNK_ROWS])
+                elif col.dtype.kind == "f":
+                    out.isetitem(i, [float_format % v if v == v else "" for v in col.tolist()])
+            out.to_csv(f, index=False, header=a == 0)

@@ -556,12 +556,17 @@ def test_a_merged_results_parts_are_its_rows(learned, plant):
         assert part.timings == ref.timings
 
 
-def test_a_replay_files_csv_is_pandas_to_csv_to_the_byte(tmp_path):
-    """``replaydir.frame_to_csv`` formats the float columns itself; the file is what
-    ``to_csv(index=False, float_format="%.10g")`` writes, byte for byte, for every kind of column a
-    replay's tables hold and the awkward values: NaN, infinities, -0.0, float32, 17 digits, text
-    that needs quoting, missing text, booleans, integers, times with a zone, a repeated name."""
+@pytest.mark.parametrize("chunk", [65536, 1, 7, 64])
+def test_a_replay_files_csv_is_pandas_to_csv_to_the_byte(tmp_path, monkeypatch, chunk):
+    """``replaydir.frame_to_csv`` formats the float columns itself, ``chunk`` rows at a time; the
+    file is what ``to_csv(index=False, float_format="%.10g")`` writes, byte for byte, for every kind
+    of column a replay's tables hold and the awkward values: NaN, infinities, -0.0, float32, 17
+    digits, text that needs quoting, missing text, booleans, integers, times with a zone, a repeated
+    name; and columns pandas formats by all their values (times without a zone that are all
+    midnights but in a few rows, fractions of a second in one row, durations, missing times)."""
+    import edge.replaydir as rd
     from edge.replaydir import frame_to_csv
+    monkeypatch.setattr(rd, "CSV_CHUNK_ROWS", chunk)
     rng = np.random.default_rng(7)
     x = rng.standard_normal(200) * 10.0 ** rng.integers(-12, 12, 200)
     x[[3, 17]] = np.nan
@@ -573,7 +578,15 @@ def test_a_replay_files_csv_is_pandas_to_csv_to_the_byte(tmp_path):
         "ok": np.arange(200) % 3 == 0, "n": np.arange(200) - 100})
     frame.insert(3, "x2", x[::-1])
     frame.columns = [*frame.columns[:3], "x", *frame.columns[4:]]      # "x" twice
-    for f in (frame, frame.iloc[:0], frame.iloc[:, [0, 3]]):
+    days = pd.Series(pd.date_range("2024-03-01", periods=200, freq="D"))
+    days[150] += pd.Timedelta(hours=6)
+    subsec = pd.Series(pd.date_range("2024-03-01", periods=200, freq="min"))
+    subsec[120] += pd.Timedelta(milliseconds=250)
+    subsec[10] = pd.NaT
+    dur = pd.Series(pd.to_timedelta(np.arange(200), unit="s"))
+    dur[100] += pd.Timedelta(microseconds=5)
+    more = pd.DataFrame({"day": days, "sub": subsec, "dur": dur, "x": x})
+    for f in (frame, frame.iloc[:0], frame.iloc[:, [0, 3]], more, more.iloc[:64], more[["sub"]]):
         frame_to_csv(f, tmp_path / "fast.csv")
         f.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
         assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()

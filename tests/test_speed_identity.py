@@ -843,3 +843,29 @@ def test_the_kept_node_weights_stay_bounded_and_right_under_threads(learned, mon
     assert not any(t.is_alive() for t in threads)
     assert errors == [] and bad == []
     assert len(C._NODE_WEIGHTS) == 1
+
+
+def test_pass_one_takes_the_stage_states_process_computed_for_the_history(plant, monkeypatch):
+    """A replay records the stage states ``process`` computes for every sample and answers pass 1's
+    calls (the measured side of each block of windows, each window's compressor observations)
+    from them: the same windows and samples to the bit as a replay that computes them again (its
+    ``processed`` given, so nothing recorded), and no sample's states computed twice."""
+    import model.analysis.compressors as C
+    from model.analysis.replay import ReplaySettings, replay
+    from simulator.config import load_simulator_config
+    from simulator.export import export_history
+    hist = export_history(0.45, cfg=load_simulator_config()).history
+    s = ReplaySettings(surrogate=False)
+    real = C._stage_arrays
+    rows: list = []
+    monkeypatch.setattr(C, "_stage_arrays", lambda *a: rows.append(len(a[1])) or real(*a))
+    shared = replay(hist, plant, s)
+    n_shared = list(rows)
+    rows.clear()
+    again = replay(hist, plant, s, processed=process(hist, plant))
+    assert len(shared.windows) >= 3 and (shared.windows["status"] == "ok").all()
+    pd.testing.assert_frame_equal(shared.windows, again.windows, check_exact=True)
+    pd.testing.assert_frame_equal(shared.samples, again.samples, check_exact=True)
+    # the history's two stages once each, and the initial window's observations (not in pass 1)
+    assert n_shared[:2] == [len(hist), len(hist)] and all(n <= s.initial_minutes for n in n_shared[2:])
+    assert sum(rows) > sum(n_shared) + len(hist)     # the other computes pass 1's again

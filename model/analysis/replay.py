@@ -40,7 +40,7 @@ from ..measured import derived, process, usable_counts
 from .. import lockstep
 from ..params import PlantParams
 from .chain import ROW_COLUMNS, AnalysisChain, ChainSettings, WindowPartial
-from .compressors import STAGES, CompressorLearner, observe, recorded_stages
+from .compressors import STAGES, CompressorLearner, observe, preset_stages, recorded_stages
 from . import speedkernel
 
 WINDOW_COLUMNS = ROW_COLUMNS
@@ -397,8 +397,10 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
         order = np.argsort(ts.to_numpy(), kind="stable")
         history = history.iloc[order].reset_index(drop=True)
         ts = ts[order]
+    history_stages: list = []       # the stage states of every sample, for pass 1 (tasks)
     if processed is None:
-        processed = process(history, params)
+        with recorded_stages() as history_stages:
+            processed = process(history, params)
     else:
         processed = processed.reset_index(drop=True)
     usable = processed["usable"].to_numpy(dtype=bool)
@@ -477,13 +479,18 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
 
     def tasks():
         """Pass 1, in window order: each window's task (the learner updated, and so on). The
-        measured side (``model.measured.derived``, with the stage states the compressor
-        observations ask for again) of PASS1_BLOCK windows at a time, in one call: per window it
-        cost ~3 ms of numpy calls on 120 rows (~5 % of a 30-day replay)."""
+        measured side (``model.measured.derived``) of PASS1_BLOCK windows at a time, in one call:
+        per window it cost ~3 ms of numpy calls on 120 rows (~5 % of a 30-day replay). The stage
+        states it and the compressor observations ask for (the property splines, ~3.5 s a
+        plant-year) are those ``process`` computed for the whole history, recorded then
+        (``preset_stages``: the same numbers, each call's inputs matched to the bit)."""
         for b0 in range(0, len(plan), PASS1_BLOCK):
             block = plan[b0:b0 + PASS1_BLOCK]
             with recorded_stages() as records:
-                rows_in = history.iloc[np.concatenate([pos for pos, _ in block])]
+                at = np.concatenate([pos for pos, _ in block])
+                rows_in = history.iloc[at]
+                if history_stages:      # the measured side's stage states: those of the history
+                    preset_stages(history_stages, at)
                 der = derived(rows_in, state.fixed)
             for c in INPUT_COLUMNS:         # the model inputs beside it, as the chain adds them
                 der[c] = floats(rows_in[c])
@@ -493,8 +500,10 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
                 end = rows.stop
                 if new_seg:
                     chain.new_segment(state)    # the change penalty never reaches across a CIP or a long stop
+                # the stage states the window's compressor observations ask for: the history's
+                stages = (history_stages, pos) if history_stages else (records, rows)
                 yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True,
-                                    pre=(der.iloc[rows].reset_index(drop=True), records, rows))
+                                    pre=(der.iloc[rows].reset_index(drop=True), *stages))
 
     for n_done, partial in enumerate(run_windows(chain, tasks(), executor,
                                                  lockstep_windows=s.lockstep_windows), start=1):

@@ -399,7 +399,8 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
     scratch = Path(tempfile.mkdtemp(prefix="plant-year-", dir=work))
     try:
         c = time.process_time()
-        write_replay_dir(res, scratch / entry.name, {"plant": entry.plant, "history": entry.history, "fleet": True},
+        write_replay_dir(res, scratch / entry.name,
+                         {"plant": entry.plant, "history": entry.history, "fleet": True},
                          "\n".join(hist.report_lines(entry.history)))
         write_cpu = time.process_time() - c
     finally:

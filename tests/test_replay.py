@@ -277,7 +277,8 @@ def test_plant_year_bench_runs_and_adds_up(tmp_path):
     q = out["cpu_s_per_window_by_quarter"]
     assert 1 <= len(q) <= 4 and all(0 < x < 20 * out["cpu_s_per_window"] for x in q)
     assert out["read_history_cpu_s"] > 0 and out["write_dir_cpu_s"] > 0
-    assert out["task_cpu_s"] == pytest.approx(out["read_history_cpu_s"] + out["cpu_s"] + out["write_dir_cpu_s"])
+    parts = out["read_history_cpu_s"] + out["cpu_s"] + out["write_dir_cpu_s"]
+    assert out["task_cpu_s"] == pytest.approx(parts)
     assert out["task_cpu_s_per_window"] == pytest.approx(out["task_cpu_s"] / out["windows"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["histories"]     # the scratch directory gone
     year_s = 365 * out["windows_per_plant_day"] * out["task_cpu_s_per_window"]

@@ -364,9 +364,7 @@ class Evaluator:
         w = self.w[idx]
         index = self.rows.index[idx]
         out = []
-        for j, sp in enumerate(sps):
-            part = slice(j * n, (j + 1) * n)
-            p = _point(sp, None, w, cols=PartColumns(outs, solved, part, shared), index=index)
+        for j, p in enumerate(_points(sps, w, outs, solved, shared, index)):
             # a one-set-point call's result is the point's own; else taken when first read
             p.vres = vres if k == 1 else (vres, j * n, (j + 1) * n)
             out.append(p)
@@ -573,6 +571,34 @@ def weighted_mean(a: np.ndarray, w: np.ndarray) -> float:
     if scl == 0.0:
         raise ZeroDivisionError("Weights sum to zero, can't be normalized")
     return float(np.multiply(a, w).sum() / scl)
+
+
+def _points(sps: list, w: np.ndarray, outs: "_Outputs", solved: np.ndarray, shared: dict, index) -> list[Point]:
+    """``[_point(sp, None, w, cols=PartColumns(outs, solved, part j, shared), index=index) for j,
+    sp in enumerate(sps)]`` for a solver call over the set points ``sps`` (n = len(w) rows each):
+    the columns the figures need and the points' sums in one array operation each, the points'
+    columns handed the rows of them. The same numbers: every column is row by row, each point's
+    rows are a contiguous row of the (points x rows) arrays, which numpy sums as the 1-D array the
+    point's own call sums, and the weights' sum is each point's."""
+    k, n = len(sps), len(w)
+    ok = status_in(PartColumns(outs, solved, slice(0, k * n), shared), SOLVED).reshape(k, n).all(axis=1)
+    got = {c: np.where(solved, np.asarray(outs.values[c], dtype=float), np.nan).reshape(k, n)
+           for c in ("Q_sink_kW", "W_total_kW", "hs_saturated")}
+    Q, W = got["Q_sink_kW"], got["W_total_kW"]
+    wQ, wW, ws = (w * Q).sum(axis=1), (w * W).sum(axis=1), w.sum()
+    sat = got["hs_saturated"].min(axis=1) > 0.5
+    out = []
+    for j, sp in enumerate(sps):
+        cols = PartColumns(outs, solved, slice(j * n, (j + 1) * n), shared)
+        for c, a in got.items():
+            cols._got[c] = a[j]
+        x = math.nan if sp is None else sp
+        if not ok[j]:
+            out.append(Point(x, math.nan, math.nan, math.nan, False, None, cols=cols, index=index))
+        else:
+            out.append(Point(x, float(wQ[j] / wW[j]), float(wQ[j] / ws), float(wW[j] / ws), bool(sat[j]),
+                             None, cols=cols, index=index))
+    return out
 
 
 def _point(sp, frame: pd.DataFrame | None, w: np.ndarray, cols: "dict | PartColumns | None" = None,

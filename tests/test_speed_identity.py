@@ -869,3 +869,35 @@ def test_pass_one_takes_the_stage_states_process_computed_for_the_history(plant,
     # the history's two stages once each, and the initial window's observations (not in pass 1)
     assert n_shared[:2] == [len(hist), len(hist)] and all(n <= s.initial_minutes for n in n_shared[2:])
     assert sum(rows) > sum(n_shared) + len(hist)     # the other computes pass 1's again
+
+
+def test_a_calls_points_are_each_points_own_figures(learned, plant):
+    """``_points`` makes a solver call's points from its columns at once: each point's COP, heat,
+    power, HS saturation and whether every row solved equal ``_point`` on that point's own columns
+    to the bit, and the columns it hands each point are those ``PartColumns`` reads — also for set
+    points where some rows do not solve."""
+    from model.optimize import SOLVED, PartColumns, _Outputs, _point, _points
+    data, _, ev, _ = learned
+    sps = [None, 2.0, 9.0, 12.5, 16.0, 30.0]
+    rows, w = ev.rows, ev.w
+    n = len(rows)
+    from model.batch import InputColumns
+    own = np.asarray(rows["p_m_sp"], dtype=float)
+    sp_all = np.concatenate([own if sp is None else np.full(n, sp) for sp in sps])
+    vres = solve_many(InputColumns.of(rows).take(np.tile(np.arange(n), len(sps))), plant, p_m_sp=sp_all,
+                      ls_mode="float")
+    outs, solved = _Outputs(vres), vres.solved()
+    got = _points(sps, w, outs, solved, {}, rows.index)
+    oks = []
+    for j, (sp, p) in enumerate(zip(sps, got)):
+        cols = PartColumns(outs, solved, slice(j * n, (j + 1) * n), {})
+        q = _point(sp, None, w, cols=cols, index=rows.index)
+        for f in ("COP", "Q_sink_kW", "W_kW"):
+            a, b = getattr(p, f), getattr(q, f)
+            assert (math.isnan(a) and math.isnan(b)) or a == b, (sp, f, a, b)
+        assert (p.ok, p.hs_saturated) == (q.ok, q.hs_saturated) and (p.sp == q.sp or sp is None)
+        for c in ("Q_sink_kW", "W_total_kW", "hs_saturated", "COP", "p_m_bar"):
+            assert np.array_equal(p.cols[c], cols[c], equal_nan=True), c
+        assert np.array_equal(p.status_in(SOLVED), q.status_in(SOLVED))
+        oks.append(p.ok)
+    assert any(oks) and not all(oks)      # some set points solve every row, some do not

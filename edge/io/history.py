@@ -285,9 +285,11 @@ def _clean_file(text: str, sep: str, decimal: str, header_at: int, required):
     starts = np.concatenate([[0], nl + 1])
     starts = starts[starts < len(buf)]              # (no empty line after the last newline)
     ends = np.concatenate([nl, [len(buf)]])[:len(starts)]
-    seps = np.flatnonzero(buf == ord(sep))
-    fields = np.searchsorted(seps, ends) - np.searchsorted(seps, starts) + 1
-    del seps
+    fields = np.empty(len(starts), dtype=np.int64)
+    for a in range(0, len(starts), CHUNK_ROWS):      # each line's fields, CHUNK_ROWS lines at a time
+        b = min(a + CHUNK_ROWS, len(starts))
+        seps = np.flatnonzero(buf[starts[a]:ends[b - 1]] == ord(sep)) + starts[a]
+        fields[a:b] = np.searchsorted(seps, ends[a:b]) - np.searchsorted(seps, starts[a:b]) + 1
     odd = np.flatnonzero(fields != len(names))
     if len(odd) > 1000:
         return None

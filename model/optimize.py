@@ -584,6 +584,8 @@ def _points(sps: list, w: np.ndarray, outs: "_Outputs", solved: np.ndarray, shar
     ok = status_in(PartColumns(outs, solved, slice(0, k * n), shared), SOLVED).reshape(k, n).all(axis=1)
     got = {c: np.where(solved, np.asarray(outs.values[c], dtype=float), np.nan).reshape(k, n)
            for c in ("Q_sink_kW", "W_total_kW", "hs_saturated")}
+    for a in got.values():          # the points share them: read only
+        a.flags.writeable = False
     Q, W = got["Q_sink_kW"], got["W_total_kW"]
     wQ, wW, ws = (w * Q).sum(axis=1), (w * W).sum(axis=1), w.sum()
     sat = got["hs_saturated"].min(axis=1) > 0.5

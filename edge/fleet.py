@@ -224,12 +224,13 @@ def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progres
     else:
         futures = {i: executor.submit(replay_plant, entries[i], str(out / entries[i].name))
                    for i in submission_order(entries)}
+        await_all(futures.values(), progress)
         outcomes = (_outcome(futures[i], e) for i, e in enumerate(entries))
     rows = []
     for k, (e, o) in enumerate(zip(entries, outcomes), start=1):
         # the task's line (it wrote the directory); a task that died has none
         rows.append(o.row if o.row is not None else plant_row(e, o, out / e.name))
-        if progress is not None:
+        if progress is not None and executor is None:
             progress(k, len(entries))
     table = pd.DataFrame(rows, columns=list(FLEET_COLUMNS))
     tmp = out / ".fleet.csv.tmp"
@@ -254,6 +255,31 @@ def submission_order(entries: list[PlantEntry]) -> list[int]:
         except OSError:
             sizes.append(0)
     return sorted(range(len(entries)), key=lambda i: (-sizes[i], i))
+
+
+AWAIT_POLL_S = 0.2          # how often await_all looks at the futures not done yet
+
+
+def await_all(futures, progress=None, poll_s: float | None = None) -> None:
+    """Wait until every future is done (a result or an exception), calling ``progress(done,
+    total)`` as each finishes, in whatever order they finish: the plants go to the cluster longest
+    first, so counting them in PLANTS.yaml's order would show a long run standing still (its first
+    plant may be the last to finish). Looks at ``done()`` every ``poll_s`` — any executor's futures
+    have it (concurrent.futures', Dask's)."""
+    poll_s = AWAIT_POLL_S if poll_s is None else poll_s
+    pending = list(futures)
+    total, finished = len(pending), 0
+    if progress is not None:
+        progress(0, total)
+    while pending:
+        still = [f for f in pending if not f.done()]
+        if len(still) < len(pending):
+            finished += len(pending) - len(still)
+            pending = still
+            if progress is not None:
+                progress(finished, total)
+        elif pending:
+            time.sleep(poll_s)
 
 
 def _outcome(future, entry: PlantEntry) -> PlantOutcome:

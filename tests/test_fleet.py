@@ -294,6 +294,42 @@ def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_
     assert list(table["reason"]) == ["task failed: RuntimeError: not run"] * 5
 
 
+def test_fleet_progress_counts_plants_as_they_finish_in_any_order(tmp_path, monkeypatch):
+    """The progress shows plants as they finish, not in PLANTS.yaml's order: here the first plant
+    of PLANTS.yaml finishes only once the progress has counted the other three (it waits for
+    that, at most 10 s); the table stays in PLANTS.yaml's order."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    import edge.fleet as fleet
+    from edge.fleet import PlantEntry, PlantOutcome, run_fleet
+    entries = [PlantEntry(name=n, plant=str(tmp_path / "plant.yaml"), history=str(tmp_path / f"{n}.csv"))
+               for n in "abcd"]
+    others_counted = threading.Event()
+    waited: dict = {}
+
+    def fake(entry, out_dir):
+        if entry.name == "a":       # True: the progress counted b, c and d while a still ran
+            waited["a"] = others_counted.wait(10.0)
+        return PlantOutcome(entry.name, False, f"{entry.name} done")
+    monkeypatch.setattr(fleet, "replay_plant", fake)
+    monkeypatch.setattr(fleet, "AWAIT_POLL_S", 0.01, raising=False)
+    calls = []
+
+    def progress(done, total):
+        calls.append((done, total))
+        if done == 3:
+            others_counted.set()
+    with ThreadPoolExecutor(max_workers=4) as ex:
+        table = run_fleet(entries, tmp_path / "out", executor=ex, progress=progress)
+    assert waited == {"a": True}
+    counts = [d for d, _ in calls]
+    assert counts[0] == 0 and counts[-1] == 4 and counts == sorted(counts)
+    assert all(t == 4 for _, t in calls)
+    assert list(table["name"]) == ["a", "b", "c", "d"]
+    assert list(table["reason"]) == ["a done", "b done", "c done", "d done"]
+
+
 # ---- (g) a worker started with Dask's trim threshold ----------------------------------------------------
 def test_replay_memory_keeps_freed_arrays_in_a_process_started_with_a_small_trim_threshold():
     """In a process started with MALLOC_TRIM_THRESHOLD_=65536 (a Dask worker's default), arrays of

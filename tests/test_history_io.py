@@ -451,3 +451,18 @@ def test_the_fast_path_reads_numbers_correctly_rounded(tmp_path, monkeypatch):
     monkeypatch.setattr(hist, "_rows", lambda *a, **k: (_ for _ in ()).throw(AssertionError("row by row")))
     got = read_history(p, required=()).frame["a"].to_numpy()
     assert np.array_equal(got.view(np.int64), np.array([float(c) for c in a]).view(np.int64))
+
+
+def test_the_fast_path_keeps_the_quality_texts_under_a_header_with_spaces(tmp_path, monkeypatch):
+    """Column names with spaces around them (stripped by the reading) and a quality column of
+    digits: the fast path reads the quality as texts, as the row-by-row reading does."""
+    import edge.io.history as hist
+    p = tmp_path / "spaces.csv"
+    p.write_text("timestamp , a , quality \n2024-03-01T00:00Z,1.5,0\n2024-03-01T00:01Z,2.5,1\n")
+    monkeypatch.setattr(hist, "FAST_PATH", False)
+    slow = read_history(p, required=())
+    monkeypatch.setattr(hist, "FAST_PATH", True)
+    monkeypatch.setattr(hist, "_rows", lambda *a, **k: (_ for _ in ()).throw(AssertionError("row by row")))
+    fast = read_history(p, required=())
+    _same_reading(fast, slow)
+    assert fast.frame["quality"].tolist() == ["0", "1"]

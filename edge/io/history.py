@@ -298,12 +298,15 @@ def _clean_file(text: str, sep: str, decimal: str, header_at: int, required):
             return None
     if len(starts) - len(odd) < 2:                  # the header and at least one row
         return None
-    other = {c: object for c in names if c in ("timestamp", "quality")}
+    other = {c for c in names if c in ("timestamp", "quality")}     # texts, not numbers
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")         # (float_precision: deprecated in pandas 3)
+            # columns by position (the header's names may carry spaces the reading strips)
             df = pd.read_csv(io.BytesIO(data), sep=sep, engine="c", float_precision="round_trip",
-                             na_filter=False, low_memory=False, dtype=other, quoting=csv.QUOTE_NONE,
+                             na_filter=False, low_memory=False, header=None, skiprows=1,
+                             names=list(range(len(names))), quoting=csv.QUOTE_NONE,
+                             dtype={i: object for i, c in enumerate(names) if c in other},
                              skip_blank_lines=True)
     except (ValueError, TypeError, pd.errors.ParserError):
         return None
@@ -323,8 +326,7 @@ def _clean_file(text: str, sep: str, decimal: str, header_at: int, required):
             cols[c] = a.to_numpy()
         else:
             return None
-    text_ts = pd.Series(df["timestamp"].to_numpy(dtype=object), dtype=str).str.strip()
-    ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601").reset_index(drop=True)
+    _, ts = _timestamps(df["timestamp"].to_numpy(dtype=object))
     if ts.isna().any():
         return None
     cols["timestamp"] = ts
@@ -363,6 +365,14 @@ def _header_error(path, names: list[str], required) -> str | None:
     return None
 
 
+def _timestamps(cells):
+    """(the cells' stripped texts, their UTC times: NaT where a text is not ISO 8601) — both
+    readings of a file take its timestamps through this."""
+    import pandas as pd
+    text_ts = pd.Series(cells, dtype=str).str.strip()
+    return text_ts, pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601").reset_index(drop=True)
+
+
 def _convert_chunk(rows: list, lines: list, names: list[str], decimal: str):
     """One chunk of rows (lists of strings): (frame with the numeric columns as numbers, the
     timestamp parsed (NaT where unreadable) and the others as text, line numbers, timestamps,
@@ -373,8 +383,7 @@ def _convert_chunk(rows: list, lines: list, names: list[str], decimal: str):
     import pandas as pd
     line_of = np.asarray(lines, dtype=int)
     text = dict(zip(names, zip(*rows))) if rows else {c: () for c in names}
-    text_ts = pd.Series(list(text["timestamp"]), dtype=str).str.strip()
-    ts = pd.to_datetime(text_ts, utc=True, errors="coerce", format="ISO8601").reset_index(drop=True)
+    text_ts, ts = _timestamps(list(text["timestamp"]))
     bad = ts.isna().to_numpy()
     first_bad = str(text_ts.iloc[int(bad.argmax())]) if bad.any() else None
     cols: dict = {}

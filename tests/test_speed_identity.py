@@ -901,3 +901,71 @@ def test_a_calls_points_are_each_points_own_figures(learned, plant):
         assert np.array_equal(p.status_in(SOLVED), q.status_in(SOLVED))
         oks.append(p.ok)
     assert any(oks) and not all(oks)      # some set points solve every row, some do not
+
+
+def test_a_replay_files_plain_chunks_are_joined_here_to_the_byte(tmp_path, monkeypatch):
+    """``frame_to_csv`` joins the lines itself when every field of a chunk is plain (the samples
+    table: texts without separators, booleans, integers, floats, missing texts) — the bytes of
+    ``to_csv`` — and hands a chunk to pandas as soon as one field needs quoting."""
+    import edge.replaydir as rd
+    from edge.replaydir import frame_to_csv
+    joined = []
+    real = rd._fields
+
+    def spy(part, cols, a, fmt):
+        got = real(part, cols, a, fmt)
+        joined.append(got is not None)
+        return got
+    monkeypatch.setattr(rd, "_fields", spy)
+    monkeypatch.setattr(rd, "CSV_CHUNK_ROWS", 16)
+    rng = np.random.default_rng(3)
+    n = 50
+    x = rng.standard_normal(n) * 10.0 ** rng.integers(-9, 9, n)
+    x[[1, 2]] = [np.nan, -0.0]
+    t = pd.date_range("2024-03-01", periods=n, freq="min", tz="UTC")
+    frame = pd.DataFrame({
+        "timestamp": [v.isoformat() for v in t], "usable": rng.random(n) > 0.5,
+        "reason": [None if i % 3 else "pump off" for i in range(n)],
+        "window": pd.array([pd.NA if i % 4 else "w é" for i in range(n)], dtype="string"),
+        "x": x, "y": x.astype(np.float32), "n": np.arange(n) - 7, "t": t})
+    frame_to_csv(frame, tmp_path / "fast.csv")
+    frame.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
+    assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()
+    assert joined == [True] * 4                      # 50 rows: 4 chunks, each joined here
+    for bad, chunk in (("a,b", 2), ('say "x"', 0), ("two\nlines", 3), ("cr\r", 1)):
+        joined.clear()
+        f = frame.copy()
+        f.loc[16 * chunk + 1, "reason"] = bad
+        frame_to_csv(f, tmp_path / "fast.csv")
+        f.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
+        assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()
+        assert joined == [i != chunk for i in range(4)]
+    for f in (frame.iloc[:0], frame[["x"]], frame[["reason"]].fillna("")):
+        joined.clear()
+        frame_to_csv(f, tmp_path / "fast.csv")
+        f.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
+        assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()
+    mixed = frame.assign(reason=[1.5 if i == 3 else "ok" for i in range(n)])
+    joined.clear()
+    frame_to_csv(mixed, tmp_path / "fast.csv")
+    mixed.to_csv(tmp_path / "pandas.csv", index=False, float_format="%.10g")
+    assert (tmp_path / "fast.csv").read_bytes() == (tmp_path / "pandas.csv").read_bytes()
+    assert joined == [False, True, True, True]        # a number among texts: pandas writes it
+
+
+def test_samples_timestamps_are_isoformat():
+    """``replay.isoformat`` (numpy for UTC whole seconds) gives ``Timestamp.isoformat`` of each
+    time, also for the times it leaves to pandas (fractions, other zones, none)."""
+    from model.analysis.replay import isoformat
+    cases = [pd.Series(pd.date_range("2024-03-01", periods=300, freq="min", tz="UTC")),
+             pd.Series(pd.to_datetime(["2024-03-01T00:00:00.5Z", "2024-03-01T00:01:00Z"], utc=True,
+                                      format="ISO8601")),
+             pd.Series(pd.to_datetime(["1969-12-31T23:59:59Z", "2024-02-29T12:00:00+02:00"], utc=True,
+                                      format="ISO8601")),
+             pd.Series(pd.date_range("2024-03-01", periods=5, freq="min", tz="Europe/Copenhagen")),
+             pd.Series(pd.to_datetime(["2024-03-01T00:00:00Z"], utc=True).as_unit("s")),
+             pd.Series(pd.to_datetime(["2024-03-01T00:00:00Z"], utc=True)).iloc[:0]]
+    for ts in cases:
+        assert list(isoformat(ts)) == [v.isoformat() for v in ts]
+    assert isoformat(cases[0])[61] == "2024-03-01T01:01:00+00:00"
+    assert isoformat(cases[2])[1] == "2024-02-29T10:00:00+00:00"

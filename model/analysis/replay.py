@@ -655,8 +655,21 @@ def _all_samples(history: pd.DataFrame, ts: pd.DatetimeIndex, processed: pd.Data
     for c in SAMPLE_COLUMNS:
         if c not in out.columns:
             out[c] = np.nan
-    out["timestamp"] = out["timestamp"].map(lambda t: t.isoformat())
+    out["timestamp"] = isoformat(out["timestamp"])
     return out[list(SAMPLE_COLUMNS)]
+
+
+def isoformat(times: pd.Series) -> np.ndarray | pd.Series:
+    """``Timestamp.isoformat()`` of every time: for UTC times in whole seconds (a history's minutes)
+    by numpy at once, "YYYY-MM-DDTHH:MM:SS+00:00" (a plant-year's 525,600 calls took ~1.2 s); any
+    other times one by one."""
+    tz = getattr(times.dtype, "tz", None)
+    if tz is not None and str(tz) == "UTC" and len(times) and not times.isna().any():
+        naive = times.dt.tz_convert(None).to_numpy()
+        whole = naive.astype("datetime64[s]")
+        if (whole == naive).all():
+            return np.datetime_as_string(whole, unit="s").astype(object) + "+00:00"
+    return times.map(lambda t: t.isoformat())
 
 
 def _cip_table(cips: list[dict], windows: pd.DataFrame, k: int) -> list[dict]:

@@ -953,10 +953,14 @@ def test_a_replay_files_plain_chunks_are_joined_here_to_the_byte(tmp_path, monke
     assert joined == [False, True, True, True]        # a number among texts: pandas writes it
 
 
-def test_samples_timestamps_are_isoformat():
-    """``replay.isoformat`` (numpy for UTC whole seconds) gives ``Timestamp.isoformat`` of each
-    time, also for the times it leaves to pandas (fractions, other zones, none)."""
+@pytest.mark.parametrize("chunk", [16384, 7])
+def test_samples_timestamps_are_isoformat(monkeypatch, chunk):
+    """``replay.isoformat`` (numpy for UTC whole seconds, ``chunk`` at a time) gives
+    ``Timestamp.isoformat`` of each time, also for the times it leaves to pandas (fractions, other
+    zones, none)."""
+    import model.analysis.replay as rp
     from model.analysis.replay import isoformat
+    monkeypatch.setattr(rp, "ISO_CHUNK", chunk)
     cases = [pd.Series(pd.date_range("2024-03-01", periods=300, freq="min", tz="UTC")),
              pd.Series(pd.to_datetime(["2024-03-01T00:00:00.5Z", "2024-03-01T00:01:00Z"], utc=True,
                                       format="ISO8601")),

@@ -99,18 +99,18 @@ def _fields(part, cols: list, a: int, float_format: str) -> list | None:
     """Per column of ``part`` (rows a.. of the frame) the text of each field as pandas' ``to_csv``
     writes it, when each is plain: floats, booleans, integers, the whole-column times of ``cols``
     and text (missing: empty) that holds none of _QUOTED, in a frame of two columns or more (a
-    lone empty field is quoted). None for any other chunk."""
+    lone empty field is quoted). None for any other chunk (found before any float is formatted)."""
     import pandas as pd
     if part.shape[1] < 2:
         return None
-    out = []
+    out: list = []
     for i in range(part.shape[1]):
         col = part.iloc[:, i]
         k = col.dtype.kind
         if cols[i] is not None:
             vals = cols[i][a:a + len(part)].tolist()
         elif k == "f":
-            out.append(_floats(col, float_format))
+            out.append(col)                 # formatted once every column is known to be plain
             continue
         elif k == "b" and col.dtype == np.dtype(bool):
             out.append(np.where(col.to_numpy(), "True", "False").tolist())
@@ -132,4 +132,4 @@ def _fields(part, cols: list, a: int, float_format: str) -> list | None:
         if any(c in text for c in _QUOTED):
             return None
         out.append(vals)
-    return out
+    return [_floats(v, float_format) if isinstance(v, pd.Series) else v for v in out]

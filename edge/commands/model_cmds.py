@@ -39,7 +39,8 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_point)
 
     b = sub.add_parser("bench", help="measure speed and accuracy targets, print JSON",
-                       description="Benchmarks of every part; prints one JSON document.")
+                       description="Benchmarks of every part; prints one JSON document: the machine "
+                                   "(its CPU, the versions, three reference timings) and one key per section.")
     b.add_argument("--config", default=None, help=PLANT_HELP)
     b.add_argument("--only", default="model,simulator,analysis,gateway,inputs",
                    help="comma-separated sections (model,simulator,analysis,gateway,inputs; also "
@@ -159,7 +160,9 @@ def cmd_bench(args) -> int:
         print(f"hp-edge bench: unknown section(s) {', '.join(unknown)}; choose from {', '.join(known)}",
               file=sys.stderr)
         return 2
-    result = {}
+    from edge.benchmachine import machine
+    # the CPU, the versions and three reference timings: figures from two machines are told apart
+    result = {"machine": machine()}
     for s in sections:
         mod, fn = known[s]
         print(f"hp-edge bench: {s} ...", file=sys.stderr, flush=True)

@@ -31,6 +31,7 @@ imported only by ``cluster()``, i.e. only by ``hp-edge fleet``.
 """
 from __future__ import annotations
 
+import os
 import math
 import re
 import time
@@ -424,12 +425,20 @@ class Cluster:
                                               host="127.0.0.1", scheduler_port=0, dashboard_address=None,
                                               silence_logs=40)
                 self.client = Client(self.local, timeout=timeout_s)
+                self._pin()
             else:
                 self.client = Client(scheduler, timeout=timeout_s)
         except (OSError, TimeoutError) as exc:
             if self.local is not None:
                 self.local.close()
             raise FleetError([f"scheduler {scheduler}: cannot connect ({exc})"]) from None
+
+    def _pin(self) -> None:
+        """Each local worker on its own CPU (``edge.fleet_pin``), where the OS allows it."""
+        if not hasattr(os, "sched_getaffinity"):
+            return
+        from edge.fleet_pin import PinWorkerToCPU
+        self.client.register_plugin(PinWorkerToCPU(sorted(os.sched_getaffinity(0))))
 
     def __enter__(self):
         return self.client

@@ -263,6 +263,47 @@ def test_embedded_cluster_workers_run_without_dasks_memory_trimming():
     assert proc.stdout.strip() == "[(None, False, '1'), (None, False, '1')] None"
 
 
+def test_embedded_cluster_pins_each_worker_to_its_own_cpu_and_its_tasks_threads_inherit_it():
+    """Worker i of the embedded cluster runs on the i-th CPU of the client's (round robin): the
+    task's thread, and a thread the task starts (a replay's lockstep threads), on that CPU alone."""
+    code = ("import os, threading, edge.fleet as F\n"
+            "def probe():\n"
+            "    import os, threading\n"
+            "    got = {}\n"
+            "    t = threading.Thread(target=lambda: got.update(child=sorted(os.sched_getaffinity(0))))\n"
+            "    t.start(); t.join()\n"
+            "    return sorted(os.sched_getaffinity(0)), got['child']\n"
+            "if __name__ == '__main__':\n"
+            "    cpus = sorted(os.sched_getaffinity(0))\n"
+            "    with F.Cluster('local', 3) as c:\n"
+            "        ws = sorted(c.scheduler_info()['workers'].items(), key=lambda kv: kv[1]['name'])\n"
+            "        got = [c.submit(probe, pure=False, workers=[a]).result() for a, _ in ws]\n"
+            "    want = [([cpus[i % len(cpus)]], [cpus[i % len(cpus)]]) for i in range(3)]\n"
+            "    print(got == want, got, want, sorted(os.sched_getaffinity(0)) == cpus)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=FLEET_TIMEOUT_S,
+                          cwd=ROOT, env=_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split()[0] == "True", proc.stdout
+    assert proc.stdout.split()[-1] == "True", proc.stdout        # the client's process is not pinned
+
+
+def test_pin_threads_pins_every_thread_of_the_process():
+    code = ("import os, threading, time\n"
+            "from edge.fleet_pin import cpu_for, pin_threads\n"
+            "ev = threading.Event()\n"
+            "t = threading.Thread(target=ev.wait); t.start()\n"
+            "cpu = cpu_for(1)\n"
+            "ok = pin_threads(cpu)\n"
+            "sets = {tid: sorted(os.sched_getaffinity(int(tid))) for tid in os.listdir('/proc/self/task')}\n"
+            "ev.set(); t.join()\n"
+            "print(ok, len(sets) >= 2 and all(v == [cpu] for v in sets.values()),\n"
+            "      cpu_for(0, [3, 1]), cpu_for(1, [3, 1]), cpu_for(2, [3, 1]))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                          env=_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "True True 1 3 1"
+
+
 # ---- (f) the longest plants first ------------------------------------------------------------------------
 def test_fleet_hands_the_longest_histories_to_the_executor_first_and_reports_in_plants_yaml_order(tmp_path):
     from concurrent.futures import Future

@@ -438,7 +438,12 @@ class Cluster:
         if not hasattr(os, "sched_getaffinity"):
             return
         from edge.fleet_pin import PinWorkerToCPU
-        self.client.register_plugin(PinWorkerToCPU(sorted(os.sched_getaffinity(0))))
+        try:
+            self.client.register_plugin(PinWorkerToCPU(sorted(os.sched_getaffinity(0))))
+        except Exception as exc:    # noqa: BLE001 - pinning is for speed: the cluster works unpinned
+            import warnings
+            warnings.warn(f"the local cluster's workers are not pinned to CPUs ({type(exc).__name__}: {exc}); "
+                          "they run unpinned, slower where every core is busy", RuntimeWarning, stacklevel=2)
 
     def __enter__(self):
         return self.client

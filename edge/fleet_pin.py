@@ -24,10 +24,16 @@ def pin_threads(cpu: int) -> bool:
     """Every thread of this process on CPU ``cpu`` (threads started later by them inherit it).
     False where the OS cannot (no sched_setaffinity or /proc/self/task) or refuses."""
     try:
-        for tid in os.listdir("/proc/self/task"):
-            os.sched_setaffinity(int(tid), {cpu})
-    except (AttributeError, OSError, ValueError):
+        tids = os.listdir("/proc/self/task")
+    except OSError:
         return False
+    for tid in tids:
+        try:
+            os.sched_setaffinity(int(tid), {cpu})
+        except ProcessLookupError:      # the thread ended meanwhile
+            continue
+        except (AttributeError, OSError, ValueError):
+            return False
     return True
 
 

@@ -31,8 +31,8 @@ imported only by ``cluster()``, i.e. only by ``hp-edge fleet``.
 """
 from __future__ import annotations
 
-import os
 import math
+import os
 import re
 import time
 from dataclasses import dataclass, field

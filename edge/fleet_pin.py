@@ -15,32 +15,11 @@ done.
 """
 from __future__ import annotations
 
-import os
-
 from distributed import WorkerPlugin
 
+from edge.cpupin import cpu_for, pin_threads
 
-def pin_threads(cpu: int) -> bool:
-    """Every thread of this process on CPU ``cpu`` (threads started later by them inherit it).
-    False where the OS cannot (no sched_setaffinity or /proc/self/task) or refuses."""
-    try:
-        tids = os.listdir("/proc/self/task")
-    except OSError:
-        return False
-    for tid in tids:
-        try:
-            os.sched_setaffinity(int(tid), {cpu})
-        except ProcessLookupError:      # the thread ended meanwhile
-            continue
-        except (AttributeError, OSError, ValueError):
-            return False
-    return True
-
-
-def cpu_for(index: int, cpus=None) -> int:
-    """The CPU of worker ``index``: the index-th of the CPUs this process may use, round robin."""
-    cpus = sorted(os.sched_getaffinity(0) if cpus is None else cpus)
-    return cpus[index % len(cpus)]
+__all__ = ["PinWorkerToCPU", "cpu_for", "pin_threads"]
 
 
 class PinWorkerToCPU(WorkerPlugin):

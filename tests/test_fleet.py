@@ -14,7 +14,6 @@ import shutil
 import signal
 import subprocess
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import pandas as pd
 import pytest
 
 from edge.cli import main
+from edge.commands.analysis_cmds import process_pool
 from model.analysis.replay import ReplaySettings, replay
 from simulator.export import export_history
 
@@ -68,8 +68,7 @@ def test_replay_through_a_process_pool_equals_the_sequential_replay(plant, day):
     s = ReplaySettings.from_config(plant.extra, surrogate=False)
     with time_limit(120):
         seq = replay(day, plant, s)
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=2, mp_context=ctx) as pool:
+        with process_pool(2) as pool:           # replay --workers 2's pool: its workers pinned
             par = replay(day, plant, ReplaySettings.from_config(plant.extra), executor=pool)
     assert len(seq.windows) >= 8 and (seq.windows["status"] == "ok").sum() >= 8
     assert seq.windows["optimization_ok"].astype(bool).sum() >= 8      # the search ran: its numbers compared
@@ -285,6 +284,34 @@ def test_embedded_cluster_pins_each_worker_to_its_own_cpu_and_its_tasks_threads_
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.split()[0] == "True", proc.stdout
     assert proc.stdout.split()[-1] == "True", proc.stdout        # the client's process is not pinned
+
+
+def _pool_probe(delay_s: float):
+    import time
+    time.sleep(delay_s)                 # long enough that the pool starts every worker
+    return os.getpid(), sorted(os.sched_getaffinity(0))
+
+
+def test_replay_workers_pool_pins_each_worker_to_its_own_cpu_and_leaves_this_process_alone():
+    """``replay --workers 3``'s pool: its workers on the CPUs of this process, one each in the
+    order they start (round robin beyond the CPUs); this process (passes 1 and 3) not pinned."""
+    cpus = sorted(os.sched_getaffinity(0))
+    with time_limit(60):
+        with process_pool(3) as pool:
+            got = dict(pool.map(_pool_probe, [0.5] * 6))
+    assert len(got) == 3, got
+    assert sorted(got.values()) == sorted([[cpus[i % len(cpus)]] for i in range(3)]), (got, cpus)
+    assert sorted(os.sched_getaffinity(0)) == cpus
+
+
+def test_pin_next_numbers_the_workers_and_survives_a_refused_pin():
+    from edge.cpupin import pin_next
+    ctx = multiprocessing.get_context("spawn")
+    counter = ctx.Value("i", 0)
+    before = sorted(os.sched_getaffinity(0))
+    pin_next(counter, [-1])             # a CPU that does not exist: refused, no exception
+    assert counter.value == 1
+    assert sorted(os.sched_getaffinity(0)) == before
 
 
 def test_pin_threads_pins_every_thread_of_the_process():

@@ -112,10 +112,19 @@ def _workers(text: str) -> int:
 
 def process_pool(workers: int):
     """The stdlib process pool of ``replay --workers N`` (spawned processes: each builds its own
-    CoolProp state and property tables; nothing but the windows' tasks is shipped)."""
+    CoolProp state and property tables; nothing but the windows' tasks is shipped). Each worker
+    pins itself to its own CPU, the i-th started to the i-th CPU this process may use, round robin
+    (``edge.cpupin``: the lockstep's thread hand-overs otherwise wait on a busy core); this
+    process, which runs the windows' passes 1 and 3, stays unpinned."""
     import multiprocessing
+    import os
     from concurrent.futures import ProcessPoolExecutor
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    ctx = multiprocessing.get_context("spawn")
+    if not hasattr(os, "sched_getaffinity"):
+        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    from edge.cpupin import pin_next
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=pin_next,
+                               initargs=(ctx.Value("i", 0), sorted(os.sched_getaffinity(0))))
 
 
 def _csv_format(p) -> None:

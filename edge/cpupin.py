@@ -7,9 +7,9 @@ next thread on whichever core it chooses; on another core it waits behind that c
 while its own core idles. Stop 39 measured it with two 30-day replays side by side on 2 cores
 (27.8 and 33.4 s of wall time, 26 % of both cores idle; each pinned to its own core, 23.8 and
 29.9 s), stop 40 with ``replay --workers 2`` (a 60-day replay 33.1 and 33.4 s unpinned, 29.1 and
-29.7 s with the pool's workers pinned). Pinning a process means
-every thread it has (``/proc/self/task``); the threads they start later inherit it. Standard
-library only: the gateway's runtime imports nothing of the extras.
+29.7 s with the pool's workers pinned). Pinning a process means every thread it has
+(``/proc/self/task``); the threads they start later inherit it. Where the OS cannot pin, nothing
+is done. Standard library only: the gateway's runtime imports nothing of the extras.
 """
 from __future__ import annotations
 

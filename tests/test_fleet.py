@@ -316,7 +316,7 @@ def test_pin_next_numbers_the_workers_and_survives_a_refused_pin():
 
 def test_pin_threads_pins_every_thread_of_the_process():
     code = ("import os, threading, time\n"
-            "from edge.fleet_pin import cpu_for, pin_threads\n"
+            "from edge.cpupin import cpu_for, pin_threads\n"
             "ev = threading.Event()\n"
             "t = threading.Thread(target=ev.wait); t.start()\n"
             "cpu = cpu_for(1)\n"

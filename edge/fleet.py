@@ -214,9 +214,12 @@ def _one_line(exc: Exception) -> str:
 # --------------------------------------------------------------------------------------------------
 # the fleet
 # --------------------------------------------------------------------------------------------------
-def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progress=None) -> "pd.DataFrame":
+def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progress=None,
+              stalled=None) -> "pd.DataFrame":
     """Replay every plant through ``executor`` (None: one after the other, here), write each
-    plant's directory and the fleet table (DIR/fleet.csv, DIR/fleet.txt); return the table."""
+    plant's directory and the fleet table (DIR/fleet.csv, DIR/fleet.txt); return the table.
+    ``stalled``: see ``await_all``; the plants still waiting when it gives a reason are cancelled
+    and reported as not replayed, with that reason."""
     import pandas as pd
     out = Path(out).absolute()         # the workers write there (their own working directory differs)
     out.mkdir(parents=True, exist_ok=True)
@@ -225,8 +228,12 @@ def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progres
     else:
         futures = {i: executor.submit(replay_plant, entries[i], str(out / entries[i].name))
                    for i in submission_order(entries)}
-        await_all(futures.values(), progress)
-        outcomes = (_outcome(futures[i], e) for i, e in enumerate(entries))
+        why = await_all(futures.values(), progress, stalled=stalled)
+        if why is not None:
+            for f in futures.values():
+                if not f.done():
+                    f.cancel()
+        outcomes = (_outcome(futures[i], e, why) for i, e in enumerate(entries))
     rows = []
     for k, (e, o) in enumerate(zip(entries, outcomes), start=1):
         # the task's line (it wrote the directory); a task that died has none
@@ -259,19 +266,24 @@ def submission_order(entries: list[PlantEntry]) -> list[int]:
 
 
 AWAIT_POLL_S = 0.2          # how often await_all looks at the futures not done yet
+STALL_CHECK_S = 2.0         # how often it asks ``stalled`` (a Dask client: one scheduler query)
 
 
-def await_all(futures, progress=None, poll_s: float | None = None) -> None:
+def await_all(futures, progress=None, poll_s: float | None = None, stalled=None) -> str | None:
     """Wait until every future is done (a result or an exception), calling ``progress(done,
     total)`` as each finishes, in whatever order they finish: the plants go to the cluster longest
     first, so counting them in PLANTS.yaml's order would show a long run standing still (its first
     plant may be the last to finish). Looks at ``done()`` every ``poll_s`` — any executor's futures
-    have it (concurrent.futures', Dask's)."""
+    have it (concurrent.futures', Dask's). ``stalled``: a callable asked every STALL_CHECK_S while
+    futures are pending; when it returns a reason (e.g. ``Cluster.stalled``: the scheduler has had
+    no worker for a while, so the tasks would wait for ever) the wait ends and that reason is
+    returned; None when every future is done."""
     poll_s = AWAIT_POLL_S if poll_s is None else poll_s
     pending = list(futures)
     total, finished = len(pending), 0
     if progress is not None:
         progress(0, total)
+    next_check = time.monotonic() + STALL_CHECK_S
     while pending:
         still = [f for f in pending if not f.done()]
         if len(still) < len(pending):
@@ -280,14 +292,30 @@ def await_all(futures, progress=None, poll_s: float | None = None) -> None:
             if progress is not None:
                 progress(finished, total)
         elif pending:
+            if stalled is not None and time.monotonic() >= next_check:
+                why = stalled()
+                if why is not None:
+                    return why
+                next_check = time.monotonic() + STALL_CHECK_S
             time.sleep(poll_s)
+    return None
 
 
-def _outcome(future, entry: PlantEntry) -> PlantOutcome:
-    """A future's outcome; a task that died (worker lost, cancelled) is a failed plant too."""
+LOST = "scheduler-connection-lost"      # distributed's reason for the futures of a lost scheduler
+
+
+def _outcome(future, entry: PlantEntry, stalled: str | None = None) -> PlantOutcome:
+    """A future's outcome; a task that died (worker lost, cancelled) is a failed plant too:
+    ``stalled`` (``await_all``'s reason) for a task still waiting when the wait ended, the
+    scheduler's lost connection for the tasks distributed cancelled then."""
+    if stalled is not None and (future.cancelled() or not future.done()):
+        return PlantOutcome(entry.name, False, f"not replayed: {stalled}")
     try:
         return future.result()
     except Exception as exc:       # noqa: BLE001 - e.g. distributed's KilledWorker: report, go on
+        if getattr(exc, "reason", None) == LOST:
+            return PlantOutcome(entry.name, False, "not replayed: the connection to the scheduler was lost "
+                                                   "before the plant's task ended")
         return PlantOutcome(entry.name, False, f"task failed: {type(exc).__name__}: {_one_line(exc)}")
 
 
@@ -405,12 +433,18 @@ LOCAL_WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOL
                        "distributed.worker.memory.monitor-interval": "1s"}
 
 
+NO_WORKERS_S = 300.0        # a scheduler without workers this long: the plants waiting are given up
+
+
 class Cluster:
     """A Dask distributed Client on an embedded LocalCluster (``scheduler='local'``: processes on
     127.0.0.1, no dashboard, ``LOCAL_WORKER_CONFIG``) or on a running scheduler's address; closes
     what it started."""
 
-    def __init__(self, scheduler: str = "local", workers: int = 2, timeout_s: float = 60.0) -> None:
+    def __init__(self, scheduler: str = "local", workers: int = 2, timeout_s: float = 60.0,
+                 no_workers_s: float = NO_WORKERS_S) -> None:
+        self.scheduler, self.no_workers_s = scheduler, float(no_workers_s)
+        self._workers_seen = time.monotonic()
         try:
             from distributed import Client, LocalCluster
         except ImportError as exc:
@@ -432,6 +466,23 @@ class Cluster:
             if self.local is not None:
                 self.local.close()
             raise FleetError([f"scheduler {scheduler}: cannot connect ({exc})"]) from None
+
+    def stalled(self) -> str | None:
+        """``await_all``'s ``stalled``: a reason once the scheduler has had no worker for
+        ``no_workers_s`` (its tasks would wait for ever: a cluster whose workers all died or never
+        came); None while it has workers, or has had none for less. A scheduler that does not
+        answer counts as having none (its lost connection cancels the tasks anyway)."""
+        try:
+            n = int(self.client.scheduler_info(n_workers=0).get("n_workers", 0))
+        except Exception:       # noqa: BLE001 - a scheduler that does not answer has no worker for us
+            n = 0
+        now = time.monotonic()
+        if n > 0:
+            self._workers_seen = now
+            return None
+        if now - self._workers_seen >= self.no_workers_s:
+            return f"the scheduler {self.scheduler} has had no worker for {self.no_workers_s:g} s"
+        return None
 
     def _pin(self) -> None:
         """Each local worker on its own CPU (``edge.fleet_pin``), where the OS allows it."""

@@ -12,8 +12,10 @@ import multiprocessing
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -226,6 +228,195 @@ def test_plants_yaml_errors_exit_2_naming_file_plant_and_key(tmp_path, capsys, m
     assert f"hp-edge fleet replay: {message}" in err.splitlines(), err
     assert not (tmp_path / "out").exists()          # nothing ran, nothing written
     assert p.exists()
+
+
+# ---- (c2) a running cluster (--scheduler tcp://...) and its faults ------------------------------------
+LOST_REASON = "not replayed: the connection to the scheduler was lost before the plant's task ended"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """Stop a process this test started and everything it started (its own session), by its PID."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=20)
+        except ProcessLookupError:
+            pass
+
+
+@contextmanager
+def dask_cluster(tmp_path: Path, workers: int):
+    """A cluster as a user runs one: ``dask scheduler`` on 127.0.0.1 (a port chosen now, no
+    dashboard) and ``workers`` single-threaded ``dask worker`` processes; yields (address, the
+    scheduler's process); stops what it started."""
+    from distributed import Client
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    procs = []
+    try:
+        with open(tmp_path / "scheduler.log", "wb") as log:
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
+                 str(port), "--no-dashboard", "--dashboard-address", "127.0.0.1:0"],
+                stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path, env=_env(), start_new_session=True))
+        for k in range(workers):
+            with open(tmp_path / f"worker-{k}.log", "wb") as log:
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "distributed.cli.dask_worker", addr, "--host", "127.0.0.1",
+                     "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                     "--local-directory", str(tmp_path / f"worker-{k}")],
+                    stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path, env=_env(), start_new_session=True))
+        with Client(addr, timeout=60) as c:         # the scheduler answers (and the workers joined)
+            if workers:
+                c.wait_for_workers(workers, timeout=90)
+        yield addr, procs[0]
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+
+
+def _fleet_cmd(fleet_dir: Path, out: Path, *extra: str) -> list:
+    return [sys.executable, "-m", "edge.cli", "fleet", "replay", str(fleet_dir / "PLANTS.yaml"),
+            "--out", str(out), *extra]
+
+
+def test_fleet_on_a_running_scheduler_and_worker_equals_the_embedded_cluster(fleet_run, fleet_dir, tmp_path):
+    """``--scheduler tcp://host:port``: the plants go to a cluster started by ``dask scheduler`` and
+    ``dask worker``; the same table and the same plant directories, byte for byte, as the embedded
+    LocalCluster's run."""
+    proc0, out0 = fleet_run
+    assert proc0.returncode == 0, proc0.stderr[-3000:]
+    out = tmp_path / "out"
+    with dask_cluster(tmp_path, 1) as (addr, _):
+        proc = subprocess.run(_fleet_cmd(fleet_dir, out, "--scheduler", addr), capture_output=True, text=True,
+                              timeout=FLEET_TIMEOUT_S, cwd=fleet_dir, env=_env())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    a, b = (pd.read_csv(d / "fleet.csv", keep_default_na=False) for d in (out0, out))
+    assert list(b["status"]) == ["ok", "failed", "ok"]
+    assert b["reason"].iloc[1] == BROKEN_REASON.format(fleet_dir.resolve() / "broken-3" / "history.csv")
+    pd.testing.assert_frame_equal(a.drop(columns=["replay_s", "out_dir"]), b.drop(columns=["replay_s", "out_dir"]))
+    for name in ("north-1", "south-2"):
+        for f in ("windows.csv", "cip.csv", "forecast.csv", "samples.csv"):
+            assert (out / name / f).read_bytes() == (out0 / name / f).read_bytes(), f"{name}/{f}"
+
+
+def test_fleet_gives_up_the_plants_when_the_scheduler_has_no_worker(fleet_dir, tmp_path):
+    """A scheduler without workers (all died, or none started) would keep the tasks waiting for
+    ever: after --no-workers-timeout every plant is reported as not replayed, with the reason, and
+    the command ends (exit 1: no plant replayed), without a traceback."""
+    out = tmp_path / "out"
+    with dask_cluster(tmp_path, 0) as (addr, _):
+        proc = subprocess.run(_fleet_cmd(fleet_dir, out, "--scheduler", addr, "--no-workers-timeout", "2"),
+                              capture_output=True, text=True, timeout=FLEET_TIMEOUT_S, cwd=fleet_dir, env=_env())
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    t = pd.read_csv(out / "fleet.csv", keep_default_na=False)
+    assert list(t["status"]) == ["failed"] * 3
+    assert set(t["reason"]) == {f"not replayed: the scheduler {addr} has had no worker for 2 s"}
+    assert "3 plants, 0 replayed, 3 failed" in proc.stdout.splitlines()
+    assert not any((out / n).exists() for n in ("north-1", "broken-3", "south-2"))
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "inf", "nan"])
+def test_fleet_no_workers_timeout_must_be_positive_seconds(fleet_dir, tmp_path, capsys, value):
+    with time_limit(30):
+        rc = main(["fleet", "replay", str(fleet_dir / "PLANTS.yaml"), "--out", str(tmp_path / "out"),
+                   "--no-workers-timeout", value])
+    assert rc == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"hp-edge fleet replay: --no-workers-timeout: expected seconds > 0, got {float(value):g}"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_fleet_reports_a_lost_scheduler_for_each_plant_and_ends(fleet_dir, tmp_path):
+    """The scheduler killed while the plants run: distributed cancels the client's tasks; each
+    plant not finished is reported with the lost connection (not distributed's exception), the
+    command ends at once (exit 1), and distributed's reconnect traceback is not printed."""
+    out = tmp_path / "out"
+    err_file = tmp_path / "stderr.txt"
+    with dask_cluster(tmp_path, 1) as (addr, sched):
+        with open(err_file, "w") as err:
+            proc = subprocess.Popen(_fleet_cmd(fleet_dir, out, "--scheduler", addr), stdout=subprocess.PIPE,
+                                    stderr=err, text=True, cwd=fleet_dir, env=_env(), start_new_session=True)
+            try:
+                deadline = time.monotonic() + 90
+                while "plants [" not in err_file.read_text() and time.monotonic() < deadline \
+                        and proc.poll() is None:
+                    time.sleep(0.02)        # the tasks are submitted: a half-day plant takes seconds
+                assert "plants [" in err_file.read_text()
+                os.killpg(sched.pid, signal.SIGKILL)
+                stdout, _ = proc.communicate(timeout=FLEET_TIMEOUT_S)
+            finally:
+                _stop(proc)
+    stderr = err_file.read_text()
+    assert proc.returncode == 1, stderr[-3000:]
+    assert "Traceback" not in stderr
+    t = pd.read_csv(out / "fleet.csv", keep_default_na=False).set_index("name")
+    assert list(t.loc[["north-1", "south-2"], "reason"]) == [LOST_REASON] * 2
+    assert t.loc["broken-3", "reason"] in (
+        LOST_REASON, BROKEN_REASON.format(fleet_dir.resolve() / "broken-3" / "history.csv"))
+    assert "3 plants, 0 replayed, 3 failed" in stdout.splitlines()
+
+
+def _children(pid: int) -> list[int]:
+    """The PIDs whose parent is ``pid`` (from /proc)."""
+    kids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(d.name))
+    return kids
+
+
+def test_replay_whose_pool_worker_is_killed_says_so_and_writes_nothing(day, tmp_path):
+    """``replay --workers 2`` whose worker process dies (SIGKILL, as the out-of-memory killer sends):
+    one clear line and exit 1, no traceback, no output directory (a replay is written only once it
+    finished)."""
+    hist = tmp_path / "day.csv"
+    day.to_csv(hist, index=False)
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "edge.cli", "replay", str(hist), "--config", str(PLANT_YAML),
+                             "--out", str(out), "--workers", "2"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
+    try:
+        deadline, victim = time.monotonic() + 90, None
+        while victim is None and time.monotonic() < deadline and proc.poll() is None:
+            for k in _children(proc.pid):     # the pool's workers (spawned: they import for seconds)
+                try:
+                    if "spawn_main" in Path(f"/proc/{k}/cmdline").read_text():
+                        victim = k
+                        break
+                except OSError:
+                    pass
+            time.sleep(0.02)
+        assert victim is not None, "no pool worker seen"
+        os.kill(victim, signal.SIGKILL)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=20)
+    assert proc.returncode == 1, stderr[-3000:]
+    assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1] == (
+        f"hp-edge replay: a worker process of the pool (--workers 2) ended abruptly (killed by a signal, "
+        f"e.g. the out-of-memory killer): the replay did not finish and nothing was written to {out}; run it "
+        f"again, with fewer workers or without --workers")
+    assert not out.exists()
 
 
 # ---- (d) the daemon does not import dask ---------------------------------------------------------------

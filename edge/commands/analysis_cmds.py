@@ -474,6 +474,8 @@ def cmd_replay(args) -> int:
     from model.analysis.replay import ReplayError, ReplaySettings, replay
     from edge.config import find_config
     from edge.io.prices import PriceFileError, price_for_plant
+    from concurrent.futures import BrokenExecutor
+    workers = getattr(args, "workers", 1)
     try:
         params = _params(args.config)
         h_days = args.forecast_horizon_days
@@ -499,7 +501,6 @@ def cmd_replay(args) -> int:
                 chain_settings, cip=dataclasses.replace(chain_settings.cip, horizon_days=float(h_days)))
         if price is not None:
             _check_price_cover(price, hist)
-        workers = getattr(args, "workers", 1)
         if workers > 1:
             with process_pool(workers) as pool:
                 res = replay(hist, params, settings, initial_window=iw, progress=Progress("windows"),
@@ -526,6 +527,13 @@ def cmd_replay(args) -> int:
     except (CommandError, PlantFileError, ReplayError, CalibrationError, DpFitError, StateError,
             CipConfigError, OSError) as exc:
         return _fail("replay", exc)
+    except BrokenExecutor:
+        # a pool worker died (SIGKILL, e.g. the out-of-memory killer): nothing is written (the
+        # directory is written from the finished replay only); no traceback
+        print(f"hp-edge replay: a worker process of the pool (--workers {workers}) ended abruptly (killed "
+              f"by a signal, e.g. the out-of-memory killer): the replay did not finish and nothing was "
+              f"written to {args.out}; run it again, with fewer workers or without --workers", file=sys.stderr)
+        return 1
     print(text)
     print(f"wrote {out / 'windows.csv'}, {out / 'cip.csv'}, {out / 'forecast.csv'}, "
           f"{out / 'samples.csv'}, {out / 'summary.txt'}, {out / 'compressors.json'}, "

@@ -64,6 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except KeyboardInterrupt:
+        # Ctrl-C (SIGINT) in a command without its own handling (the gateway's run and demo have
+        # theirs): one line and the shell's code for it, no traceback
+        print(f"hp-edge {args.command}: interrupted", file=sys.stderr)
+        return 130
     return int(rc or 0)
 
 

@@ -35,6 +35,7 @@ import math
 import os
 import re
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,7 +229,11 @@ def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progres
     else:
         futures = {i: executor.submit(replay_plant, entries[i], str(out / entries[i].name))
                    for i in submission_order(entries)}
-        why = await_all(futures.values(), progress, stalled=stalled)
+        interrupted = False
+        try:
+            why = await_all(futures.values(), progress, stalled=stalled)
+        except KeyboardInterrupt:       # Ctrl-C (or the command's SIGTERM): the table of what finished
+            why, interrupted = INTERRUPTED, True
         if why is not None:
             for f in futures.values():
                 if not f.done():
@@ -245,7 +250,21 @@ def run_fleet(entries: list[PlantEntry], out: str | Path, executor=None, progres
     table.to_csv(tmp, index=False, float_format="%.6g")
     tmp.replace(out / "fleet.csv")
     (out / "fleet.txt").write_text(fleet_text(table) + "\n", encoding="utf-8")
+    if executor is not None and interrupted:
+        raise FleetInterrupted(table)
     return table
+
+
+INTERRUPTED = "the fleet command was stopped (Ctrl-C or SIGTERM) before the plant's task ended"
+
+
+class FleetInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM, see ``hp-edge fleet replay``) during ``run_fleet``: the table (every plant
+    not finished: INTERRUPTED) is written."""
+
+    def __init__(self, table) -> None:
+        super().__init__("interrupted")
+        self.table = table
 
 
 def submission_order(entries: list[PlantEntry]) -> list[int]:
@@ -433,6 +452,26 @@ LOCAL_WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOL
                        "distributed.worker.memory.monitor-interval": "1s"}
 
 
+@contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while the embedded cluster starts its processes, which inherit that (an
+    ignored signal stays ignored in a child, and neither Python nor asyncio installs its
+    KeyboardInterrupt handler over it). A terminal's Ctrl-C goes to every process of its group: the
+    workers died with a traceback each, their nannies restarted them, and the client's shutdown could
+    hang; now only this process takes it (``run_fleet`` writes the table of what finished, the
+    cluster is closed). Outside the main thread (signals cannot be set there) nothing changes."""
+    import signal
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 NO_WORKERS_S = 300.0        # a scheduler without workers this long: the plants waiting are given up
 
 
@@ -454,7 +493,7 @@ class Cluster:
         try:
             if scheduler == "local":
                 import dask
-                with dask.config.set(LOCAL_WORKER_CONFIG):
+                with dask.config.set(LOCAL_WORKER_CONFIG), _sigint_ignored():
                     self.local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                               host="127.0.0.1", scheduler_port=0, dashboard_address=None,
                                               silence_logs=40)

@@ -395,13 +395,7 @@ def test_replay_whose_pool_worker_is_killed_says_so_and_writes_nothing(day, tmp_
     try:
         deadline, victim = time.monotonic() + 90, None
         while victim is None and time.monotonic() < deadline and proc.poll() is None:
-            for k in _children(proc.pid):     # the pool's workers (spawned: they import for seconds)
-                try:
-                    if "spawn_main" in Path(f"/proc/{k}/cmdline").read_text():
-                        victim = k
-                        break
-                except OSError:
-                    pass
+            victim = _pool_worker_of(proc.pid)    # a pool worker (spawned: it imports for seconds)
             time.sleep(0.02)
         assert victim is not None, "no pool worker seen"
         os.kill(victim, signal.SIGKILL)
@@ -416,6 +410,103 @@ def test_replay_whose_pool_worker_is_killed_says_so_and_writes_nothing(day, tmp_
         f"hp-edge replay: a worker process of the pool (--workers 2) ended abruptly (killed by a signal, "
         f"e.g. the out-of-memory killer): the replay did not finish and nothing was written to {out}; run it "
         f"again, with fewer workers or without --workers")
+    assert not out.exists()
+
+
+# ---- (c3) Ctrl-C and SIGTERM ---------------------------------------------------------------------------
+INTERRUPTED = "not replayed: the fleet command was stopped (Ctrl-C or SIGTERM) before the plant's task ended"
+
+
+def _group_gone(pgid: int, seconds: float = 20.0) -> bool:
+    """True once no process of the process group ``pgid`` (one this test started) is left."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _signalled(cmd: list, cwd: Path, ready, sig: int, group: bool, tmp_path: Path):
+    """Run ``cmd`` in its own session; once ``ready(stderr so far, pid)`` is true send ``sig`` (to
+    the whole group, as a terminal's Ctrl-C does, or to the command's process only, as ``kill PID``
+    does); returns (returncode, stdout, stderr, every process of the group gone)."""
+    err_file = tmp_path / "stderr.txt"
+    with open(err_file, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, cwd=cwd, env=_env(),
+                                start_new_session=True)
+        try:
+            deadline = time.monotonic() + 120
+            while not ready(err_file.read_text(), proc.pid) and time.monotonic() < deadline \
+                    and proc.poll() is None:
+                time.sleep(0.02)
+            assert proc.poll() is None, "the command ended before the signal"
+            (os.killpg if group else os.kill)(proc.pid, sig)
+            stdout, _ = proc.communicate(timeout=FLEET_TIMEOUT_S)
+            gone = _group_gone(proc.pid)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=20)
+    return proc.returncode, stdout, err_file.read_text(), gone
+
+
+@pytest.mark.parametrize("sig, group, rc, how", [(signal.SIGINT, True, 130, "interrupted"),
+                                                 (signal.SIGTERM, False, 143, "stopped by SIGTERM")],
+                         ids=["ctrl-c", "sigterm"])
+def test_fleet_stopped_writes_the_table_and_leaves_no_process(fleet_dir, tmp_path, sig, group, rc, how):
+    """Ctrl-C in a terminal (SIGINT to every process of the group: the cluster's workers too) or
+    SIGTERM to the command while the plants run: the table is written with every plant not finished
+    marked, the cluster is closed (no process of the group left), one line on stderr, no traceback."""
+    out = tmp_path / "out"
+    code, stdout, stderr, gone = _signalled(_fleet_cmd(fleet_dir, out, "--workers", "2"), fleet_dir,
+                                            lambda err, pid: "plants [" in err, sig, group, tmp_path)
+    assert code == rc, stderr[-3000:]
+    assert gone
+    assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1] == (f"hp-edge fleet replay: {how}; wrote {out / 'fleet.csv'} and "
+                                       f"{out / 'fleet.txt'}: 0 of 3 plants replayed, the others marked not replayed")
+    t = pd.read_csv(out / "fleet.csv", keep_default_na=False).set_index("name")
+    assert list(t.loc[["north-1", "south-2"], "reason"]) == [INTERRUPTED] * 2
+    assert t.loc["broken-3", "reason"] in (
+        INTERRUPTED, BROKEN_REASON.format(fleet_dir.resolve() / "broken-3" / "history.csv"))
+
+
+def _pool_worker_of(pid: int) -> int | None:
+    for k in _children(pid):
+        try:
+            if "spawn_main" in Path(f"/proc/{k}/cmdline").read_text():
+                return k
+        except OSError:
+            pass
+    return None
+
+
+@pytest.mark.parametrize("after_s", [0.0, 1.0], ids=["as-the-pool-starts", "while-it-replays"])
+def test_replay_with_workers_ctrl_c_stops_at_once_without_tracebacks(day, tmp_path, after_s):
+    """Ctrl-C in a terminal during ``replay --workers 2`` (as soon as a pool worker exists, and a
+    second later, while the workers import and replay: a day takes them several seconds): the
+    pool's workers ignore SIGINT (each printed a traceback), the command cancels the chunks not
+    started and ends (it waited for every queued chunk: it seemed to hang), exit 130, nothing
+    written, no process of the group left."""
+    hist = tmp_path / "day.csv"
+    day.to_csv(hist, index=False)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "edge.cli", "replay", str(hist), "--config", str(PLANT_YAML), "--out", str(out),
+           "--workers", "2"]
+    seen = []
+
+    def ready(err, pid):
+        if not seen and _pool_worker_of(pid) is not None:
+            seen.append(time.monotonic())
+        return bool(seen) and time.monotonic() - seen[0] >= after_s
+    code, stdout, stderr, gone = _signalled(cmd, tmp_path, ready, signal.SIGINT, True, tmp_path)
+    assert code == 130, stderr[-3000:]
+    assert gone
+    assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1] == "hp-edge replay: interrupted"
     assert not out.exists()
 
 

@@ -115,16 +115,63 @@ def process_pool(workers: int):
     CoolProp state and property tables; nothing but the windows' tasks is shipped). Each worker
     pins itself to its own CPU, the i-th started to the i-th CPU this process may use, round robin
     (``edge.cpupin``: the lockstep's thread hand-overs otherwise wait on a busy core); this
-    process, which runs the windows' passes 1 and 3, stays unpinned."""
+    process, which runs the windows' passes 1 and 3, stays unpinned. Ctrl-C: the workers ignore
+    SIGINT (a terminal sends it to all of them; each printed its traceback), this process gets it,
+    and leaving the ``with`` block on an exception cancels the chunks not started and waits only
+    for the running ones (until stop 41 it waited for every queued chunk: a Ctrl-C seemed to hang).
+    The workers are started here, all of them, with SIGINT blocked in this process meanwhile: they
+    inherit the blocked signal and unblock it only once they ignore it (``pool_worker``), so a
+    Ctrl-C while a worker still imports reaches this process alone (it gave a traceback from the
+    worker); this process takes it, held back, as it unblocks, and stops the pool."""
     import multiprocessing
     import os
-    from concurrent.futures import ProcessPoolExecutor
+    import signal
+    from concurrent.futures import ProcessPoolExecutor, wait
+
+    class Pool(ProcessPoolExecutor):
+        def __exit__(self, exc_type, exc, tb):
+            self.shutdown(wait=True, cancel_futures=exc_type is not None)
+            return False
     ctx = multiprocessing.get_context("spawn")
-    if not hasattr(os, "sched_getaffinity"):
-        return ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
-    from edge.cpupin import pin_next
-    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=pin_next,
-                               initargs=(ctx.Value("i", 0), sorted(os.sched_getaffinity(0))))
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    pool = Pool(max_workers=workers, mp_context=ctx, initializer=pool_worker, initargs=(ctx.Value("i", 0), cpus))
+    try:
+        blocked = _block_sigint(True)
+        try:
+            # one task a worker, none idle yet: the pool starts a process for each (os.getpid: no import)
+            started = [pool.submit(os.getpid) for _ in range(workers)]
+        finally:
+            if blocked:
+                _block_sigint(False)     # a Ctrl-C meanwhile is raised here
+        wait(started)
+    except BaseException:       # Ctrl-C while they start: this process stops them before it goes
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    return pool
+
+
+def _block_sigint(block: bool) -> bool:
+    """Block (or unblock) SIGINT in this thread; False where the platform cannot."""
+    import signal
+    try:
+        signal.pthread_sigmask(signal.SIG_BLOCK if block else signal.SIG_UNBLOCK, {signal.SIGINT})
+        return True
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+def pool_worker(counter, cpus) -> None:
+    """``process_pool``'s initializer in each worker: SIGINT ignored, then unblocked (the parent
+    handles Ctrl-C and stops the pool), then pinned (``edge.cpupin.pin_next``) where the OS allows it. Never raises."""
+    import signal
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except (OSError, ValueError):
+        pass
+    _block_sigint(False)        # blocked since process_pool started it: a Ctrl-C held back is dropped
+    if cpus is not None:
+        from edge.cpupin import pin_next
+        pin_next(counter, cpus)
 
 
 def _csv_format(p) -> None:

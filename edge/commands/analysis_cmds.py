@@ -126,7 +126,7 @@ def process_pool(workers: int):
     import multiprocessing
     import os
     import signal
-    from concurrent.futures import ProcessPoolExecutor, wait
+    from concurrent.futures import ProcessPoolExecutor
 
     class Pool(ProcessPoolExecutor):
         def __exit__(self, exc_type, exc, tb):
@@ -138,13 +138,14 @@ def process_pool(workers: int):
     try:
         blocked = _block_sigint(True)
         try:
-            # one task a worker, none idle yet: the pool starts a process for each (os.getpid: no import)
-            started = [pool.submit(os.getpid) for _ in range(workers)]
+            # one task a worker, none idle yet: submit starts a process for each, there and then
+            # (os.getpid: nothing to import); they boot while this process goes on
+            for _ in range(workers):
+                pool.submit(os.getpid)
         finally:
             if blocked:
                 _block_sigint(False)     # a Ctrl-C meanwhile is raised here
-        wait(started)
-    except BaseException:       # Ctrl-C while they start: this process stops them before it goes
+    except BaseException:       # Ctrl-C as they start: this process stops them before it goes
         pool.shutdown(wait=True, cancel_futures=True)
         raise
     return pool

@@ -505,6 +505,17 @@ class Cluster:
             if self.local is not None:
                 self.local.close()
             raise FleetError([f"scheduler {scheduler}: cannot connect ({exc})"]) from None
+        except (TypeError, ValueError) as exc:
+            # e.g. tls:// without the client's TLS files in Dask's configuration: distributed raises
+            # TypeError("TLS expects a `ssl_context` argument ...") from deep in its connector
+            if self.local is not None:
+                self.local.close()
+            if scheduler.startswith("tls://") and "TLS" in str(exc):
+                why = ("no TLS settings for the client: Dask's configuration needs "
+                       "distributed.comm.tls.ca-file, .client.cert and .client.key")
+            else:
+                why = _one_line(exc)
+            raise FleetError([f"scheduler {scheduler}: cannot connect ({why})"]) from None
 
     def stalled(self) -> str | None:
         """``await_all``'s ``stalled``: a reason once the scheduler has had no worker for

@@ -338,6 +338,21 @@ def test_fleet_no_workers_timeout_must_be_positive_seconds(fleet_dir, tmp_path, 
     assert not (tmp_path / "out").exists()
 
 
+def test_fleet_on_a_tls_scheduler_without_tls_settings_exits_2_with_the_reason(fleet_dir, tmp_path):
+    """``--scheduler tls://...`` with no TLS files in Dask's configuration (an empty one here): one line
+    naming what is missing, exit 2, nothing written (distributed raised a TypeError: a traceback)."""
+    env = _env()
+    env.update(HOME=str(tmp_path), DASK_CONFIG=str(tmp_path / "dask"))
+    out = tmp_path / "out"
+    proc = subprocess.run(_fleet_cmd(fleet_dir, out, "--scheduler", "tls://127.0.0.1:1"), capture_output=True,
+                          text=True, timeout=FLEET_TIMEOUT_S, cwd=fleet_dir, env=env)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [
+        "hp-edge fleet replay: scheduler tls://127.0.0.1:1: cannot connect (no TLS settings for the client: "
+        "Dask's configuration needs distributed.comm.tls.ca-file, .client.cert and .client.key)"]
+    assert not out.exists()
+
+
 def test_fleet_reports_a_lost_scheduler_for_each_plant_and_ends(fleet_dir, tmp_path):
     """The scheduler killed while the plants run: distributed cancels the client's tasks; each
     plant not finished is reported with the lost connection (not distributed's exception), the

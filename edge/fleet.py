@@ -35,7 +35,6 @@ import math
 import os
 import re
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -452,26 +451,6 @@ LOCAL_WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOL
                        "distributed.worker.memory.monitor-interval": "1s"}
 
 
-@contextmanager
-def _sigint_ignored():
-    """SIGINT ignored while the embedded cluster starts its processes, which inherit that (an
-    ignored signal stays ignored in a child, and neither Python nor asyncio installs its
-    KeyboardInterrupt handler over it). A terminal's Ctrl-C goes to every process of its group: the
-    workers died with a traceback each, their nannies restarted them, and the client's shutdown could
-    hang; now only this process takes it (``run_fleet`` writes the table of what finished, the
-    cluster is closed). Outside the main thread (signals cannot be set there) nothing changes."""
-    import signal
-    try:
-        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
-
-
 NO_WORKERS_S = 300.0        # a scheduler without workers this long: the plants waiting are given up
 
 
@@ -493,7 +472,13 @@ class Cluster:
         try:
             if scheduler == "local":
                 import dask
-                with dask.config.set(LOCAL_WORKER_CONFIG), _sigint_ignored():
+
+                from edge.procsignals import ignored
+                # SIGINT ignored while the cluster starts: its worker processes inherit that and
+                # never see a terminal's Ctrl-C (they died with a traceback each, their nannies
+                # restarted them, and the shutdown could hang); only this process takes it, and
+                # run_fleet writes the table of what finished (a Ctrl-C in these seconds is lost)
+                with dask.config.set(LOCAL_WORKER_CONFIG), ignored():
                     self.local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                               host="127.0.0.1", scheduler_port=0, dashboard_address=None,
                                               silence_logs=40)
@@ -505,6 +490,10 @@ class Cluster:
             if self.local is not None:
                 self.local.close()
             raise FleetError([f"scheduler {scheduler}: cannot connect ({exc})"]) from None
+        except KeyboardInterrupt:       # Ctrl-C as the client connects: close what was started
+            if self.local is not None:
+                self.local.close()
+            raise
         except (TypeError, ValueError) as exc:
             # e.g. tls:// without the client's TLS files in Dask's configuration: distributed raises
             # TypeError("TLS expects a `ssl_context` argument ...") from deep in its connector

@@ -119,14 +119,15 @@ def process_pool(workers: int):
     SIGINT (a terminal sends it to all of them; each printed its traceback), this process gets it,
     and leaving the ``with`` block on an exception cancels the chunks not started and waits only
     for the running ones (until stop 41 it waited for every queued chunk: a Ctrl-C seemed to hang).
-    The workers are started here, all of them, with SIGINT blocked in this process meanwhile: they
-    inherit the blocked signal and unblock it only once they ignore it (``pool_worker``), so a
-    Ctrl-C while a worker still imports reaches this process alone (it gave a traceback from the
-    worker); this process takes it, held back, as it unblocks, and stops the pool."""
+    The workers are started here, all of them, with SIGINT held back in this process meanwhile
+    (``edge.procsignals``): they inherit the blocked signal and unblock it only once they ignore it
+    (``pool_worker``), so a Ctrl-C while a worker still imports reaches this process alone (it gave
+    a traceback from the worker); this process takes it as the block ends and stops the pool."""
     import multiprocessing
     import os
-    import signal
     from concurrent.futures import ProcessPoolExecutor
+
+    from edge.procsignals import held
 
     class Pool(ProcessPoolExecutor):
         def __exit__(self, exc_type, exc, tb):
@@ -136,29 +137,15 @@ def process_pool(workers: int):
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     pool = Pool(max_workers=workers, mp_context=ctx, initializer=pool_worker, initargs=(ctx.Value("i", 0), cpus))
     try:
-        blocked = _block_sigint(True)
-        try:
+        with held():        # a Ctrl-C meanwhile is raised as it ends
             # one task a worker, none idle yet: submit starts a process for each, there and then
             # (os.getpid: nothing to import); they boot while this process goes on
             for _ in range(workers):
                 pool.submit(os.getpid)
-        finally:
-            if blocked:
-                _block_sigint(False)     # a Ctrl-C meanwhile is raised here
     except BaseException:       # Ctrl-C as they start: this process stops them before it goes
         pool.shutdown(wait=True, cancel_futures=True)
         raise
     return pool
-
-
-def _block_sigint(block: bool) -> bool:
-    """Block (or unblock) SIGINT in this thread; False where the platform cannot."""
-    import signal
-    try:
-        signal.pthread_sigmask(signal.SIG_BLOCK if block else signal.SIG_UNBLOCK, {signal.SIGINT})
-        return True
-    except (AttributeError, OSError, ValueError):
-        return False
 
 
 def pool_worker(counter, cpus) -> None:
@@ -169,7 +156,8 @@ def pool_worker(counter, cpus) -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     except (OSError, ValueError):
         pass
-    _block_sigint(False)        # blocked since process_pool started it: a Ctrl-C held back is dropped
+    from edge.procsignals import block_sigint
+    block_sigint(False)         # blocked since process_pool started it: a Ctrl-C held back is dropped
     if cpus is not None:
         from edge.cpupin import pin_next
         pin_next(counter, cpus)

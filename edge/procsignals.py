@@ -12,6 +12,9 @@ each while the command itself was still stopping them.
   in those seconds is lost to the parent. The embedded Dask cluster needs it: distributed forks its
   worker processes from threads whose signal mask is clear (measured: the IO-loop thread started
   inside ``held`` has SIGINT unblocked), so a blocked SIGINT does not reach them.
+- ``term_as_interrupt``: SIGTERM taken as Ctrl-C for the block (``hp-edge fleet replay``: the table
+  of the plants finished is written and the cluster closed; Python's default ends the process at
+  once, without them).
 """
 from __future__ import annotations
 
@@ -41,17 +44,38 @@ def held():
 
 
 @contextmanager
+def _handler(signum: int, handler):
+    """``handler`` for ``signum`` in this process for the block, the previous one after it; yields
+    False (and changes nothing) outside the main thread, where signals cannot be set."""
+    try:
+        old = signal.signal(signum, handler)
+    except ValueError:
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        signal.signal(signum, old)
+
+
+@contextmanager
+def term_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt for the block; yields a list that holds the signal once it
+    came (to tell it from a Ctrl-C)."""
+    got: list = []
+
+    def on_term(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt
+    with _handler(signal.SIGTERM, on_term):
+        yield got
+
+
+@contextmanager
 def ignored():
     """SIGINT ignored in this process for the block: the processes it starts inherit that (an
     ignored signal stays ignored through fork and exec, and neither Python nor asyncio installs its
     KeyboardInterrupt handler over it). A Ctrl-C meanwhile is lost. Outside the main thread (where
     signals cannot be set) nothing changes."""
-    try:
-        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:
+    with _handler(signal.SIGINT, signal.SIG_IGN):
         yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)

@@ -69,34 +69,10 @@ class _OneLine:
             lg.handlers[:], lg.propagate = handlers, propagate
 
 
-class _TermAsInterrupt:
-    """SIGTERM (``kill PID``, a job's time limit, systemd) handled as Ctrl-C while the fleet runs:
-    the table of the plants finished is written and the cluster closed (Python's default ends the
-    process at once: no fleet.csv). The context's value is a list that holds the signal once it came.
-    Outside the main thread nothing changes."""
-
-    def __enter__(self):
-        import signal
-        self.got: list = []
-        self.signal = signal
-
-        def on_term(signum, frame):
-            self.got.append(signum)
-            raise KeyboardInterrupt
-        try:
-            self.old = signal.signal(signal.SIGTERM, on_term)
-        except ValueError:
-            self.old = None
-        return self.got
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            self.signal.signal(self.signal.SIGTERM, self.old)
-
-
 def cmd_fleet_replay(args) -> int:
     from edge.fleet import Cluster, FleetError, FleetInterrupted, load_plants, run_fleet
     from edge.commands.analysis_cmds import Progress, _fail
+    from edge.procsignals import term_as_interrupt
     got: list = []
     try:
         entries = load_plants(args.plants)
@@ -110,7 +86,7 @@ def cmd_fleet_replay(args) -> int:
         if wait is not None and not (wait > 0 and wait < float("inf")):
             raise FleetError([f"--no-workers-timeout: expected seconds > 0, got {wait:g}"])
         n = args.workers or max(1, min(os.cpu_count() or 1, len(entries)))
-        with _OneLine(), _TermAsInterrupt() as got:
+        with _OneLine(), term_as_interrupt() as got:
             cluster = Cluster(sched, n, **({} if wait is None else {"no_workers_s": wait}))
             with cluster as client:
                 table = run_fleet(entries, args.out, executor=client, progress=Progress("plants"),

@@ -13,6 +13,7 @@ from model.analysis.forecast import (FitSettings, ForecastError, LawPrior, NotEn
 
 R0, R_INF, TAU = 2.5e-3, 6.0e-3, 15.0        # the simulator's law (config/simulator.yaml), K/kW, days
 NOISE = 0.05e-3                              # per 2-h window estimate [K/kW]
+EDGE_RTOL = 1e-12                            # the scalar upper edge against the array band (rounding)
 
 
 def ks(t, R0=R0, R_inf=R_INF, tau=TAU):
@@ -386,3 +387,18 @@ def test_a_prior_fit_of_a_flat_cycle_has_a_band_that_does_not_depend_on_where_th
         lo, hi = fit.band(fit.t_last + 7.0, kind="mean")
         assert hi - fit.value(fit.t_last + 7.0) > 0.5 * fit.se_typ        # the prior's possible growth
 
+
+
+@pytest.mark.parametrize("law_", ["kern_seaton", "linear"])
+def test_the_upper_edge_reach_bisects_on_is_the_prediction_bands(law_):
+    """``reach`` bisects on a scalar form of the band's upper edge: the band's numbers, on both
+    laws, through the series near k t = 0 and far out; and the crossing it finds is the band's."""
+    rng = np.random.default_rng(3)
+    t = windows(10)
+    f = fit_fouling(t, ks(t) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE), law=law_)
+    assert f.law == law_
+    hi = f._upper_edge(0.9)
+    for x in [0.0, 1e-6, 1e-4, 0.5, t[-1], 30.0, 400.0, 3650.0]:
+        assert hi(x) == pytest.approx(f.band(x, 0.9)[1], rel=EDGE_RTOL, abs=0.0), x
+    c = f.reach(float(f.band(t[-1] + 5.0, 0.9)[1]), level=0.9)
+    assert c.upper_days == pytest.approx(t[-1] + 5.0, abs=1e-9)

@@ -250,6 +250,10 @@ class Evaluator:
         self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
         self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
         self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
+        # the vectorised solver's plateaus: per row the floating p_m [bar(g)] (NaN: none yet) and
+        # (the solver call's VResult, the row's position in it)
+        self._plateau_v = np.full(len(self.rows), np.nan)
+        self._plateau_src: list = [None] * len(self.rows)
         self._other = guess_from if guess_from is not None and len(guess_from.rows) == len(self.rows) \
             else None
         # the vectorised solver starts rows from another evaluator's rows too when they are other
@@ -353,13 +357,24 @@ class Evaluator:
         from .vcycle import solve_many
         k, n = len(sps), len(idx)
         self.evals += k
-        self.solves += k * n
         own = self._own_sp[idx] if self._own_sp is not None else np.full(n, np.nan)
         sp_all = np.concatenate([own if sp is None else np.full(n, float(sp)) for sp in sps])
-        rows = self._input_columns().take(np.tile(idx, k))
+        row_all = np.tile(idx, k)
         guess, gidx = self._guesses(sps, idx)
-        vres = solve_many(rows, self.params, p_m_sp=sp_all, ls_mode=self.ls_mode, guess=guess,
-                          guess_index=gidx)
+        # a row that ran on the HS-speed plateau answers every set point PLATEAU_REUSE_BAR or more
+        # below its floating p_m without a solve (as the scalar path's ``at``)
+        p_pl = self._plateau_v[row_all]
+        with np.errstate(invalid="ignore"):
+            reuse = np.isfinite(p_pl) & (sp_all <= p_pl - PLATEAU_REUSE_BAR)
+        todo = np.flatnonzero(~reuse)
+        self.solves += len(todo)
+        sub = None
+        if len(todo):
+            sub = solve_many(self._input_columns().take(row_all[todo]), self.params, p_m_sp=sp_all[todo],
+                             ls_mode=self.ls_mode, guess=guess,
+                             guess_index=None if gidx is None else gidx[todo])
+            self._note_plateaus(sub, row_all[todo])
+        vres = sub if len(todo) == len(row_all) else self._with_plateaus(sub, todo, row_all)
         solved, shared, outs = vres.solved(), {}, _Outputs(vres)
         w = self.w[idx]
         index = self.rows.index[idx]
@@ -370,6 +385,39 @@ class Evaluator:
             out.append(p)
         return out
 
+
+    def _note_plateaus(self, vres, rows: np.ndarray) -> None:
+        """Remember, for each row of this evaluator first seen on the HS-speed plateau in ``vres``
+        (a solver call over ``rows``), its floating p_m and where its solution is."""
+        on = (np.asarray(vres.branch) == "hs_max") & among(np.asarray(vres.status, dtype=object), SOLVED)
+        on &= np.isnan(self._plateau_v[rows])
+        for pos in np.flatnonzero(on):
+            i = int(rows[pos])
+            if np.isnan(self._plateau_v[i]):          # the first of a row's plateaus in the call
+                self._plateau_v[i] = float(vres.values["p_m_barg"][pos])
+                self._plateau_src[i] = (vres, int(pos))
+
+    def _with_plateaus(self, sub, todo: np.ndarray, row_all: np.ndarray):
+        """The call's whole result: the rows ``todo`` from ``sub`` (the solver's answer, None when
+        every row was on a known plateau), the others the plateau solutions of their rows."""
+        from .vcycle import concat_rows, take_rows
+        order = np.empty(len(row_all), dtype=int)
+        parts, base = [], 0
+        if sub is not None:
+            order[todo] = np.arange(len(todo))
+            parts.append(sub)
+            base = len(todo)
+        groups: dict = {}
+        for p in np.flatnonzero(np.isin(np.arange(len(row_all)), todo, invert=True)):
+            src, pos = self._plateau_src[int(row_all[p])]
+            g = groups.setdefault(id(src), (src, [], []))
+            g[1].append(pos)
+            g[2].append(p)
+        for src, pos, at in groups.values():
+            parts.append(take_rows(src, np.asarray(pos, dtype=int)))
+            order[np.asarray(at, dtype=int)] = base + np.arange(len(pos))
+            base += len(pos)
+        return take_rows(concat_rows(parts), order)
 
     def _input_columns(self) -> InputColumns:
         """The rows' input columns as floats, read once (the solver's rows for every call)."""

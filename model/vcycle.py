@@ -437,6 +437,30 @@ def take_rows(v: VResult, idx: np.ndarray) -> VResult:
     return type(v)(**kw)
 
 
+def concat_rows(parts: list) -> VResult:
+    """The VResults ``parts`` one after the other: every per-row array (an array whose first axis
+    is its part's rows in every part) concatenated, anything else the first part's."""
+    if len(parts) == 1:
+        return parts[0]
+    ms = [len(v) for v in parts]
+
+    def per_row(vals) -> bool:
+        return all(isinstance(x, np.ndarray) and x.shape[:1] == (m,) for x, m in zip(vals, ms))
+
+    kw = {}
+    for f in dataclasses.fields(parts[0]):
+        vals = [getattr(v, f.name) for v in parts]
+        if isinstance(vals[0], dict):
+            kw[f.name] = {a: (np.concatenate([d[a] for d in vals])
+                              if all(a in d for d in vals) and per_row([d[a] for d in vals]) else b)
+                          for a, b in vals[0].items()}
+        elif per_row(vals):
+            kw[f.name] = np.concatenate(vals)
+        else:
+            kw[f.name] = vals[0]
+    return type(parts[0])(**kw)
+
+
 def _row_params(params: PlantParams, R_th_f, cond, i: int, deltas: dict | None = None) -> PlantParams:
     """The parameters of row i (``params`` with its own R_th_f, condenser factor and curve
     differences)."""

@@ -9,7 +9,8 @@ import pytest
 
 from model import batch
 from model.batch import simulate_batch
-from model.optimize import COLUMNS, SOLVED, Evaluator, OptimizationError, optimize_setpoint, sweep
+from model.optimize import (COLUMNS, PLATEAU_REUSE_BAR, SOLVED, Evaluator, OptimizationError,
+                            optimize_setpoint, sweep)
 from simulator.synthetic import Noise, Operation, Truth, generate
 
 SWEEP_STEP = 0.05         # bar, brute-force resolution (issue #4)
@@ -119,3 +120,39 @@ def test_a_points_columns_are_its_frames_on_the_scalar_and_the_vectorised_path(w
         got[vec] = p
     for c in ("COP", "p_m_bar", "W_LS_kW", "eta_is_HS"):
         np.testing.assert_allclose(got[True].col(c), got[False].col(c), rtol=COL_RTOL, err_msg=c)
+
+
+def test_a_row_on_the_hs_plateau_answers_lower_set_points_without_a_solve(window, brute):
+    """The vectorised Evaluator, as the scalar one: a row that ran HS-saturated (p_m floating above
+    the set point) gives that solution for every set point PLATEAU_REUSE_BAR or more below its
+    floating p_m, without solving it again — the figures a fresh solve there gives (the plateau's
+    COP does not depend on the set point, test_plateau_below_hs_saturation)."""
+    data, par = window
+    flat = brute[brute["hs_saturated"]]
+    top, low = float(flat["p_m_sp_barg"].max()), float(flat["p_m_sp_barg"].min())
+    w = np.ones(len(data))
+    amb = par.ambient_pressure / 1e5
+    ev = Evaluator(data, w, par)
+    first = ev.at(top)
+    assert first.ok and first.hs_saturated
+    assert (first.col("p_m_bar") - amb >= top + PLATEAU_REUSE_BAR).all()   # floating above: reusable
+    solves = ev.solves
+    above = float((first.col("p_m_bar") - amb).max()) + 0.1     # above every row's floating p_m
+    below, mixed = ev.at_many([low, above])
+    assert ev.solves == solves + len(data)           # only the set point above the plateau solved
+    assert mixed.ok and mixed.sp == pytest.approx(above, abs=1e-9) and not mixed.hs_saturated
+    assert below.hs_saturated and below.COP == first.COP
+    for c in ("Q_sink_kW", "W_total_kW", "p_m_bar", "N_HS_rpm", "p_c_bar", "status"):
+        assert list(below.col(c)) == list(first.col(c)), c          # the plateau's own rows
+    # a fresh solve on the plateau gives the same figures (where its cold start solves every row:
+    # at the plateau's low end some rows' cold branch test ends out of the compressor map)
+    for sp in sorted(flat["p_m_sp_barg"]):
+        fresh = Evaluator(data, w, par).at(sp)
+        if fresh.ok:
+            break
+    assert fresh.ok and fresh.hs_saturated and sp < top
+    again = ev.at(sp)
+    assert ev.solves == solves + len(data)
+    assert again.COP == pytest.approx(fresh.COP, rel=COL_RTOL)
+    for c in ("Q_sink_kW", "W_total_kW", "p_m_bar", "N_HS_rpm", "p_c_bar"):
+        np.testing.assert_allclose(again.col(c), fresh.col(c), rtol=COL_RTOL, err_msg=c)

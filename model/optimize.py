@@ -374,7 +374,7 @@ class Evaluator:
                              ls_mode=self.ls_mode, guess=guess,
                              guess_index=None if gidx is None else gidx[todo])
             self._note_plateaus(sub, row_all[todo])
-        vres = sub if len(todo) == len(row_all) else self._with_plateaus(sub, todo, row_all)
+        vres = sub if len(todo) == len(row_all) else self._with_plateaus(sub, todo, reuse, row_all)
         solved, shared, outs = vres.solved(), {}, _Outputs(vres)
         w = self.w[idx]
         index = self.rows.index[idx]
@@ -384,7 +384,6 @@ class Evaluator:
             p.vres = vres if k == 1 else (vres, j * n, (j + 1) * n)
             out.append(p)
         return out
-
 
     def _note_plateaus(self, vres, rows: np.ndarray) -> None:
         """Remember, for each row of this evaluator first seen on the HS-speed plateau in ``vres``
@@ -397,9 +396,10 @@ class Evaluator:
                 self._plateau_v[i] = float(vres.values["p_m_barg"][pos])
                 self._plateau_src[i] = (vres, int(pos))
 
-    def _with_plateaus(self, sub, todo: np.ndarray, row_all: np.ndarray):
+    def _with_plateaus(self, sub, todo: np.ndarray, reuse: np.ndarray, row_all: np.ndarray):
         """The call's whole result: the rows ``todo`` from ``sub`` (the solver's answer, None when
-        every row was on a known plateau), the others the plateau solutions of their rows."""
+        every row was on a known plateau), the rows ``reuse`` (a mask) the plateau solutions of
+        their rows."""
         from .vcycle import concat_rows, take_rows
         order = np.empty(len(row_all), dtype=int)
         parts, base = [], 0
@@ -408,7 +408,7 @@ class Evaluator:
             parts.append(sub)
             base = len(todo)
         groups: dict = {}
-        for p in np.flatnonzero(np.isin(np.arange(len(row_all)), todo, invert=True)):
+        for p in np.flatnonzero(reuse):
             src, pos = self._plateau_src[int(row_all[p])]
             g = groups.setdefault(id(src), (src, [], []))
             g[1].append(pos)

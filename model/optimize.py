@@ -473,12 +473,10 @@ class Evaluator:
             return None, None
         if len(parts) == 1:
             return WarmStart(*parts[0]), index[0] if len(index) == 1 else np.concatenate(index)
-        # the states stacked as whole VResults' dicts were: the per-row arrays (by the first
-        # part's rows) one after the other, anything else the first part's
-        m0 = parts[0][1]
-        state = {k: (np.concatenate([st[k] for st, _ in parts])
-                     if isinstance(a, np.ndarray) and a.shape[:1] == (m0,) else a)
-                 for k, a in parts[0][0].items()}
+        # the states stacked as whole VResults' dicts were: the per-row arrays one after the
+        # other, anything else the first part's
+        from .vcycle import stack_rows
+        state = stack_rows([st for st, _ in parts], [m for _, m in parts])
         return WarmStart(state, base), np.concatenate(index)
 
 

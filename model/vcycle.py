@@ -437,27 +437,31 @@ def take_rows(v: VResult, idx: np.ndarray) -> VResult:
     return type(v)(**kw)
 
 
+def _per_row(vals, ms) -> bool:
+    """Each of ``vals`` an array whose first axis is its part's rows (``ms``)."""
+    return all(isinstance(x, np.ndarray) and x.shape[:1] == (m,) for x, m in zip(vals, ms))
+
+
+def stack_rows(dicts: list, ms: list) -> dict:
+    """Dicts of parts of ``ms`` rows each (a VResult's values or warm-start state) as one: every
+    per-row array (in every part) concatenated, anything else the first part's."""
+    return {a: (np.concatenate([d[a] for d in dicts])
+                if all(a in d for d in dicts) and _per_row([d[a] for d in dicts], ms) else b)
+            for a, b in dicts[0].items()}
+
+
 def concat_rows(parts: list) -> VResult:
-    """The VResults ``parts`` one after the other: every per-row array (an array whose first axis
-    is its part's rows in every part) concatenated, anything else the first part's."""
+    """The VResults ``parts`` one after the other (``stack_rows``' rule for every field)."""
     if len(parts) == 1:
         return parts[0]
     ms = [len(v) for v in parts]
-
-    def per_row(vals) -> bool:
-        return all(isinstance(x, np.ndarray) and x.shape[:1] == (m,) for x, m in zip(vals, ms))
-
     kw = {}
     for f in dataclasses.fields(parts[0]):
         vals = [getattr(v, f.name) for v in parts]
         if isinstance(vals[0], dict):
-            kw[f.name] = {a: (np.concatenate([d[a] for d in vals])
-                              if all(a in d for d in vals) and per_row([d[a] for d in vals]) else b)
-                          for a, b in vals[0].items()}
-        elif per_row(vals):
-            kw[f.name] = np.concatenate(vals)
+            kw[f.name] = stack_rows(vals, ms)
         else:
-            kw[f.name] = vals[0]
+            kw[f.name] = np.concatenate(vals) if _per_row(vals, ms) else vals[0]
     return type(parts[0])(**kw)
 
 

@@ -789,7 +789,9 @@ class WarmSolve:
             self.sw_in[u] = True
             q = p1[j]
             self.dead[q[~self.conv[q]]] = True
-            self.p_spt[u] = -1
+            # the "sp" root is the set-point test of the HS-bound problem (a borrowed row has the
+            # exact branch test's instead)
+            self.p_spt[u] = np.where(bt[j], -1, q)
             self.p_in[u] = self._add(u, IN, rows[j], want[j], self.T_sp[u], T_m_sp[j], T_c_sp[j])
             self._hs_screen(u, want[j], T_c_sp[j])
             changed = True

@@ -532,6 +532,27 @@ def test_a_guess_from_unrelated_rows_still_gives_the_cold_answers(plant):
     assert not vr.warm[index < 0].any()
 
 
+SWITCH_ROWS_MIN = 5      # rows of the grid whose guess ran at the set point and whose answer is at an HS bound
+
+
+@pytest.mark.parametrize("ls_mode", ["flag", "float"])
+def test_a_row_whose_guess_ran_at_the_set_point_stays_warm_at_an_hs_bound(plant, ls_mode):
+    """A row whose guess ran at its set point ("sp") but which needs the HS at a speed bound at the new
+    set point changes branch once and stays warm: the "sp" root is the HS-bound problem's set-point
+    test (until stop 43 the switch dropped that test and the row went to the cold path), and its
+    answer is the cold path's."""
+    df = grid(full=False)
+    guess = solve_many(df.assign(p_m_sp=df["p_m_sp"] + 1.0), plant, ls_mode=ls_mode)
+    cold = solve_many(df, plant, ls_mode=ls_mode)
+    switch = ((np.asarray(guess.branch) == "sp") & np.isin(np.asarray(cold.branch), ["hs_max", "hs_min"])
+              & (np.asarray(cold.status) == "ok"))
+    assert switch.sum() >= SWITCH_ROWS_MIN
+    info = check_warm(plant, df, ls_mode, guess)
+    vr = info["result"]
+    assert np.asarray(vr.warm)[switch].all()
+    assert (np.asarray(vr.branch)[switch] == np.asarray(cold.branch)[switch]).all()
+
+
 def test_guess_arguments_are_checked(plant):
     df = grid(full=False).iloc[:10]
     g = solve_many(df, plant)

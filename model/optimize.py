@@ -780,7 +780,20 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     """``search`` in three batched calls of the vectorised solver: the whole coarse grid; a fine grid
     (FINE_STEP) over the best coarse point's feasible neighbours; the vertex of the parabola through
     the best fine point and its neighbours (to ``xtol``, as Brent's method would), kept when it is
-    better. Then the same beyond-check and plateau convention as the scalar search."""
+    better. Then the same beyond-check and plateau convention as the scalar search. (The steps are
+    ``_search_steps``'; ``searches`` runs several such searches on one evaluator together.)"""
+    out = _drive(ev, [_search_steps(ev, lo, hi, coarse_step, xtol, feasible, score)])[0]
+    if isinstance(out, BaseException):
+        raise out
+    return out
+
+
+def _search_steps(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: float,
+                  feasible: Callable[[Point], bool] | None,
+                  score: Callable[[Point], float] | None = None):
+    """``_search_v``'s search as a generator: it yields the set points it needs next (the driver,
+    ``_drive``, evaluates them with ``ev.at_many``; the search then reads them from the cache) and
+    returns (set point, its Point)."""
     def value(p: Point) -> float:
         if not p.ok or (feasible is not None and not feasible(p)):
             return -math.inf
@@ -798,6 +811,7 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     grid = np.arange(lo, hi + 1e-9, coarse_step)
     if grid[-1] < hi - 1e-9:
         grid = np.append(grid, hi)
+    yield list(grid)
     scan = values(ev.at_many(list(grid)))
     if not np.isfinite(scan).any():
         raise OptimizationError("no set point in the range solves every sample of the window"
@@ -815,6 +829,7 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
     cands = [float(grid[i])]
     if b - a > xtol:
         fine = np.unique(np.append(np.arange(a, b + 1e-9, FINE_STEP), [a, b]))
+        yield list(fine)
         fv = values(ev.at_many(list(fine)))
         k = int(np.flatnonzero(fv >= np.nanmax(fv) - PLATEAU_RTOL * abs(np.nanmax(fv)))[-1])
         cands.insert(0, float(fine[k]))
@@ -826,14 +841,19 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
                 xv = x1 - 0.5 * ((x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)) / den
                 if x0 < xv < x2 and abs(xv - x1) > 0.1 * xtol:
                     cands.insert(0, float(xv))
+    yield cands
     vals = [value(ev.at(c)) for c in cands]
     sp_opt = cands[int(np.argmax(vals))]
     p = ev.at(sp_opt)
     if not math.isfinite(value(p)):
         raise OptimizationError("the optimum found does not solve every sample")
-    p.beyond = None
     if feasible is not None:
+        # (the beyond-check's answer is kept on the point: a search without ``feasible`` leaves
+        # it as it is, so that a search run beside this one on the same evaluator, ``searches``,
+        # that ends at the same cached point does not overwrite it)
+        p.beyond = None
         nbs = [x for x in (sp_opt - 0.5 * coarse_step, sp_opt + 0.5 * coarse_step) if lo <= x <= hi]
+        yield nbs
         for nb, q in zip(nbs, ev.at_many(nbs)):
             sq, sp_ = (q.COP, p.COP) if score is None else (score(q), score(p))
             if q.ok and not feasible(q) and sq > sp_ * (1.0 + PLATEAU_RTOL):
@@ -843,6 +863,64 @@ def _search_v(ev: Evaluator, lo: float, hi: float, coarse_step: float, xtol: flo
         p_m = float(np.average(p.col("p_m_bar"), weights=ev.w)) * 1e5
         sp_opt = float(Pa_to_barg(p_m, amb / 1e5))
     return sp_opt, p
+
+
+def _drive(ev: Evaluator, steps: list, extra: list = ()) -> list:
+    """Run the generators ``steps`` (``_search_steps``) on ``ev`` together: at each turn the set
+    points that the live ones ask for and the cache does not hold yet are solved in one
+    ``ev.at_many`` call (one call of the vectorised solver, one round of a replay's lockstep), a
+    generator whose points are all cached going on at once. ``extra``: set points solved with the
+    first call. Returns per generator what it returned, or the exception it raised."""
+    out: list = [None] * len(steps)
+    asks: dict[int, list] = {}
+
+    def go(i: int) -> None:
+        while True:
+            try:
+                pts = next(steps[i])
+            except StopIteration as stop:
+                out[i] = stop.value
+                return
+            except Exception as exc:        # noqa: BLE001 -- handed to the caller as the search's result
+                out[i] = exc
+                return
+            if any(round(float(x), 9) not in ev._cache for x in pts):
+                asks[i] = pts
+                return
+
+    for i in range(len(steps)):
+        go(i)
+    first = list(extra)
+    while asks or first:
+        ev.at_many(first + [x for i in sorted(asks) for x in asks[i]])
+        first = []
+        ready = sorted(asks)
+        asks.clear()
+        for i in ready:
+            go(i)
+    return out
+
+
+def searches(ev: Evaluator, lo: float, hi: float, specs: list, extra: list = (),
+             coarse_step: float = COARSE_STEP, xtol: float = XTOL) -> list:
+    """Several ``search``es over one evaluator and range, each spec (feasible, score); per spec its
+    (set point, Point), or the exception it raised (OptimizationError where no candidate solves).
+    ``extra``: further set points to solve on the way (cached in ``ev``). With the vectorised
+    solver the searches take their steps together, so that each step is one solver call for all of
+    them (in a replay's lockstep, the advice's search and the surrogate tracker's cost the rounds of
+    one); each search's answer is the one it gives alone, within the solver's tolerances (the warm
+    starts come from what the cache holds). Without it, one after the other."""
+    if not batch.VECTORISED:
+        if extra:
+            ev.at_many(list(extra))
+        out = []
+        for feasible, score in specs:
+            try:
+                out.append(search(ev, lo, hi, coarse_step, xtol, feasible=feasible, score=score))
+            except OptimizationError as exc:
+                out.append(exc)
+        return out
+    return _drive(ev, [_search_steps(ev, lo, hi, coarse_step, xtol, f, s) for f, s in specs], list(extra))
 
 
 def column_max(values) -> float:

@@ -416,6 +416,99 @@ def test_the_advice_given_its_check_rows_is_the_advice_computing_them(learned, p
     assert np.array_equal(w1, w2)
 
 
+SOLVER_REL = 1e-8       # the vectorised solver's answers from other warm starts agree to this (relative)
+SOLVER_SP_BAR = 1e-6    # ... and the set points the searches find from them to this [bar]
+
+
+def test_the_trackers_search_beside_the_advices_is_each_alone_in_the_advices_solver_calls(
+        learned, plant, monkeypatch):
+    """A window that gives the surrogate tracker a row runs the tracker's search (the model optimum
+    without the trusted region) beside the advice's own (``draft_advice``'s ``track``): its set
+    points and the reference set point ride in the advice's solver calls (in a replay's lockstep,
+    its rounds), and the advice and the tracker's row are what each gives alone, after the other."""
+    import model.vcycle as vcycle
+    from model.analysis.advice import draft_advice
+    from model.analysis.surrogate_tracker import optimum_row
+    data, learner, _, _ = learned
+    adaptive = learner.apply(plant)
+    s = AdviceSettings()
+    calls = [0]
+    solve = vcycle.solve_many
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return solve(*a, **k)
+    monkeypatch.setattr(vcycle, "solve_many", counted)
+
+    def n_calls(f):
+        c0 = calls[0]
+        out = f()
+        return out, calls[0] - c0
+    a, n_a = n_calls(lambda: draft_advice(data, adaptive, learner, s))
+    row_a, n_t = n_calls(lambda: optimum_row(a.rows, a.w, adaptive, 10.0, 0.0, ev=a.ev, bounds=(a.lo, a.hi)))
+    b, n_b = n_calls(lambda: draft_advice(data, adaptive, learner, s, track=10.0))
+    row_b, n_r = n_calls(lambda: optimum_row(b.rows, b.w, adaptive, 10.0, 0.0, ev=b.ev, bounds=(b.lo, b.hi),
+                                             searched=b.tracked))
+    assert a.trusted is not None                    # the advice's search has a trusted region to keep to
+    assert n_t == 3 and n_b == n_a and n_r == 0     # alone: 3 calls of its own; beside: none
+    assert abs(a.sp_opt - b.sp_opt) <= SOLVER_SP_BAR and a.reasons == b.reasons
+    for k in ("COP_opt_rep", "score_opt_rep", "sd_opt", "dcop_step"):
+        assert math.isclose(getattr(a, k), getattr(b, k), rel_tol=SOLVER_REL), k
+    assert row_a is not None and row_b is not None and row_a.keys() == row_b.keys()
+    assert abs(row_a["p_m_opt_bar_a"] - row_b["p_m_opt_bar_a"]) <= SOLVER_SP_BAR
+    for k, v in row_a.items():
+        assert math.isclose(v, row_b[k], rel_tol=SOLVER_REL, abs_tol=1e-12), k
+    # the tracker's search result stays in the process: a pickled draft leaves it out
+    assert b.tracked is not None and pickle.loads(pickle.dumps(b)).tracked is None
+
+
+def test_searches_beside_each_other_are_each_alone_and_keep_their_beyond(learned, plant, monkeypatch):
+    """``optimize.searches``: two searches on one evaluator (one kept to a stretch of set points, one
+    not) and an extra set point in no more solver calls than the longer one alone; each answer (set
+    point, COP, the beyond-check) is the one it gives alone on an evaluator of its own."""
+    import model.vcycle as vcycle
+    from model.optimize import search, searches
+    _, _, ev0, _ = learned
+    rows, w = ev0.rows, ev0.w
+    lo, hi = 8.0, 19.0
+    calls = [0]
+    solve = vcycle.solve_many
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return solve(*a, **k)
+    monkeypatch.setattr(vcycle, "solve_many", counted)
+
+    def fresh():
+        e = Evaluator(rows, w, plant)
+        e.at_many([None, 13.0])
+        return e
+
+    def feasible(p):             # a stretch below the free optimum: the optimum is beyond it
+        return p.sp is not None and p.sp <= 11.0
+    specs = [(feasible, None), (None, None)]
+    alone, n_alone = [], []
+    for f, sc in specs:
+        e = fresh()
+        c0 = calls[0]
+        alone.append(search(e, lo, hi, feasible=f, score=sc))
+        n_alone.append(calls[0] - c0)
+    e = fresh()
+    c0 = calls[0]
+    both = searches(e, lo, hi, specs, extra=[10.0])
+    assert calls[0] - c0 <= max(n_alone) < sum(n_alone) and 10.0 in e._cache
+    for (sp_a, p_a), (sp_b, p_b) in zip(alone, both):
+        assert abs(sp_a - sp_b) <= SOLVER_SP_BAR
+        assert math.isclose(p_a.COP, p_b.COP, rel_tol=SOLVER_REL)
+    assert alone[1][0] > 11.0 + 0.1                 # the free optimum lies above the stretch ...
+    assert alone[0][1].beyond is not None and both[0][1].beyond == alone[0][1].beyond   # ... so beyond
+    # no candidate at all: the search's OptimizationError is its result, the other one goes on
+    none = searches(fresh(), lo, hi, [(lambda p: False, None), (None, None)])
+    assert str(none[0]) == ("no set point in the range solves every sample of the window within "
+                            "the trusted region")
+    assert abs(none[1][0] - alone[1][0]) <= SOLVER_SP_BAR
+
+
 def test_the_bins_stacked_statistics_are_the_bin_by_bin_ones():
     """The local fits' per-bin statistics live in two stacked arrays, so that a decay is one
     multiplication: after adds and decays (more bins than the first allocation) every bin's

@@ -43,7 +43,7 @@ import pandas as pd
 from .. import batch
 from ..batch import INPUT_COLUMNS, among, matrix, numeric
 from ..optimize import (SOLVED, Evaluator, OptimizationError, Point, draw_points, groups,
-                        representative, search, weighted_mean, window_range, column_max, column_min)
+                        representative, search, searches, weighted_mean, window_range, column_max, column_min)
 from ..params import PlantParams
 from .compressors import STAGES, CompressorLearner
 
@@ -137,7 +137,7 @@ class AdviceResult:
     curve_residual: dict             # stage -> mean(eta_meas - curve)
     n_samples: int
     n_eval_rows: int
-    evaluations: int
+    evaluations: int                 # set points evaluated (with the draft's ``track``, the tracker's too)
     optimizer: str = "search"        # "search" | "surrogate" (the tracker's qualified form)
     trusted: Trusted | None = None
     trusted_lo_barg: float = math.nan   # the p_m stretch the learned curves vouch for (Trusted)
@@ -406,10 +406,12 @@ class AdviceDraft:
     optimizer: str = "search"        # "search", or "surrogate" when sp_override was taken
     ev: Evaluator | None = None      # the representative rows' Evaluator (its solutions), in this
                                      # process only: not pickled
+    tracked: object = None           # with ``track``: the surrogate tracker's search on ``ev`` (its
+                                     # (set point, Point), or the exception it raised), likewise
 
     def __getstate__(self):
         d = dict(self.__dict__)
-        d["ev"] = None
+        d["ev"] = d["tracked"] = None
         return d
 
 
@@ -510,12 +512,17 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
                  settings: AdviceSettings, coverage_share: float = 1.0,
                  curve_residual: dict | None = None, R_th_f_se_K_per_kW: float = 0.0,
                  measured: dict | None = None, sp_override: float | None = None,
-                 seed: tuple | None = None, checked: CheckRows | None = None) -> AdviceDraft:
+                 seed: tuple | None = None, checked: CheckRows | None = None,
+                 track: float | None = None) -> AdviceDraft:
     """The model optimum of the window and everything about it (see ``advise``) except the dead
     band against the previous recommendation, which ``settle_advice`` applies. ``seed``: (VResult,
     rows) of nearby solutions at the rows' own set points (the chain's condenser factor's) to start
     the representative points from. ``checked``: ``check_rows(data, settings)`` when the caller has
-    them."""
+    them. ``track``: the surrogate tracker's reference set point [bar(g)] when this window gives the
+    tracker a row: the tracker's search (the model optimum over the same range, without the trusted
+    region or the shape score; ``surrogate_tracker.optimum_row``) then runs beside the advice's own
+    and the reference set point is solved on the way (``optimize.searches``: one solver call per
+    step for both), its result in ``AdviceDraft.tracked``."""
     s = settings
     amb = adaptive.ambient_pressure / 1e5
     c = checked if checked is not None else check_rows(data, s)
@@ -572,7 +579,13 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             if p.hs_saturated:      # the plateau convention of the search
                 p_m = float(np.average(p.col("p_m_bar"), weights=ev.w))
                 sp_opt = p_m - amb
-    if sp_opt is None:
+    tracked = None
+    if sp_opt is None and track is not None and batch.VECTORISED:
+        found, tracked = searches(ev, lo, hi, [(feasible, score), (None, None)], extra=[float(track)])
+        if isinstance(found, BaseException):
+            raise found
+        sp_opt, p_opt = found
+    elif sp_opt is None:
         sp_opt, p_opt = search(ev, lo, hi, feasible=feasible, score=score)
     p_e, p_c = ref_p["p_e_bar"], ref_p["p_c_bar"]
     gm = math.sqrt(float(p_e.mean()) * float(p_c.mean()))
@@ -636,7 +649,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
         score_opt_rep=float(score(p_opt)) if score is not None else float(p_opt.COP), ref=ref, opt=opt,
         gm_p=gm_p, gm=gm, sd_opt=sd_opt, draws_ref=draws_ref, R_th_f_se_K_per_kW=R_th_f_se_K_per_kW,
         reasons=reasons, dcop_step=dcop_step, coverage_share=float(coverage_share), curve_residual=resid,
-        evaluations=ev.evals + full.evals, optimizer=optimizer, ev=ev)
+        evaluations=ev.evals + full.evals, optimizer=optimizer, ev=ev, tracked=tracked)
 
 
 def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) -> AdviceResult:

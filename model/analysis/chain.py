@@ -620,24 +620,27 @@ class AnalysisChain:
                 pred = task.tracker.predict_setpoint(ev_rows, ev_w, adaptive)
                 if pred is not None:
                     override, used = pred
+            # the tracker's row of this window (when it takes one) from the advice's own solutions,
+            # its search run beside the advice's (``draft_advice``'s ``track``)
+            track = (task.tracker.s.reference_p_m_sp_barg
+                     if task.tracker is not None and task.tracker.takes_next() else None)
             try:
                 out.draft = draft_advice(
                     adv_in, adaptive, learner, self.s.advice,
                     coverage_share=res.coverage_share if learner is not None else 1.0,
                     curve_residual={st: getattr(res, f"eta_is_{st}_resid") for st in STAGES},
                     R_th_f_se_K_per_kW=res.R_th_f_se_K_per_kW, measured=measured, sp_override=override,
-                    seed=seed, checked=checked)
+                    seed=seed, checked=checked, track=track)
                 out.ev_rows, out.ev_w, out.surrogate = ev_rows, ev_w, used
                 d = out.draft
                 base_pt = d.ev._cache.get(None) if d.ev is not None else None
                 if base_pt is not None and base_pt.vres is not None:
                     out.seed = (base_pt.vres, d.rows)
-                if task.tracker is not None and d.ev is not None and task.tracker.takes_next():
-                    # the tracker's row of this window from the advice's own solutions
+                if track is not None and d.ev is not None:
                     out.ev_rows, out.ev_w = d.rows, d.w
-                    out.tracker_row = optimum_row(d.rows, d.w, adaptive,
-                                                  task.tracker.s.reference_p_m_sp_barg, res.t_end,
-                                                  ev=d.ev, bounds=(d.lo, d.hi))
+                    out.tracker_row = optimum_row(d.rows, d.w, adaptive, track, res.t_end,
+                                                  ev=d.ev, bounds=(d.lo, d.hi), searched=d.tracked)
+                d.tracked = None
             except (OptimizationError, ValueError, ArithmeticError) as exc:
                 res.status = f"failed: set-point optimization: {exc}"
         # ---- the cost of fouling's model runs (issue 10): every level pass 3 may need

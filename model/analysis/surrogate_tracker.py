@@ -147,12 +147,13 @@ def reference_inputs(rows: pd.DataFrame, w: np.ndarray, params: PlantParams,
 
 def optimum_row(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, reference_barg: float,
                 t: float, ev: Evaluator | None = None,
-                bounds: tuple[float, float] | None = None) -> dict | None:
+                bounds: tuple[float, float] | None = None, searched=None) -> dict | None:
     """One training row: the inputs at the reference set point and the model's optimum over the
     whole set-point range (p_m,opt in bar a, dCOP against the reference in %). None when the model
     cannot answer for these rows. ``ev``: an Evaluator of these rows and parameters at hand (the
     advice's: its solutions are reused), ``bounds``: the set-point range [bar(g)] (default: the
-    rows' own, ``window_range``)."""
+    rows' own, ``window_range``). ``searched``: that search already run on ``ev`` over ``bounds``
+    (``advice.draft_advice``'s ``track``: its (set point, Point), or the exception it raised)."""
     r = reference_inputs(rows, w, params, reference_barg, ev)
     if r is None:
         return None
@@ -161,11 +162,18 @@ def optimum_row(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, referenc
     act = ev.at(None)
     if not act.ok:
         return None
-    try:
-        lo, hi = bounds if bounds is not None else window_range(act.frame, amb)
-        _, p = search(ev, lo, hi)
-    except OptimizationError:
-        return None
+    if searched is not None and bounds is not None:
+        if isinstance(searched, OptimizationError):
+            return None
+        if isinstance(searched, BaseException):
+            raise searched
+        _, p = searched
+    else:
+        try:
+            lo, hi = bounds if bounds is not None else window_range(act.frame, amb)
+            _, p = search(ev, lo, hi)
+        except OptimizationError:
+            return None
     p_m = float(np.average(p.col("p_m_bar"), weights=ev.w))
     return {**x, "p_m_opt_bar_a": p_m, "dCOP_pct": 100.0 * (p.COP / x["COP_reference"] - 1.0),
             "t": float(t), "R_th_f_K_per_kW": params.R_th_f * 1e3}

@@ -420,18 +420,10 @@ SOLVER_REL = 1e-8       # the vectorised solver's answers from other warm starts
 SOLVER_SP_BAR = 1e-6    # ... and the set points the searches find from them to this [bar]
 
 
-def test_the_trackers_search_beside_the_advices_is_each_alone_in_the_advices_solver_calls(
-        learned, plant, monkeypatch):
-    """A window that gives the surrogate tracker a row runs the tracker's search (the model optimum
-    without the trusted region) beside the advice's own (``draft_advice``'s ``track``): its set
-    points and the reference set point ride in the advice's solver calls (in a replay's lockstep,
-    its rounds), and the advice and the tracker's row are what each gives alone, after the other."""
+def _count_solver_calls(monkeypatch) -> list:
+    """A one-element list counting the calls of the vectorised solver (``vcycle.solve_many``) from
+    now on in this test."""
     import model.vcycle as vcycle
-    from model.analysis.advice import draft_advice
-    from model.analysis.surrogate_tracker import optimum_row
-    data, learner, _, _ = learned
-    adaptive = learner.apply(plant)
-    s = AdviceSettings()
     calls = [0]
     solve = vcycle.solve_many
 
@@ -439,6 +431,21 @@ def test_the_trackers_search_beside_the_advices_is_each_alone_in_the_advices_sol
         calls[0] += 1
         return solve(*a, **k)
     monkeypatch.setattr(vcycle, "solve_many", counted)
+    return calls
+
+
+def test_the_trackers_search_beside_the_advices_is_each_alone_in_the_advices_solver_calls(
+        learned, plant, monkeypatch):
+    """A window that gives the surrogate tracker a row runs the tracker's search (the model optimum
+    without the trusted region) beside the advice's own (``draft_advice``'s ``track``): its set
+    points and the reference set point ride in the advice's solver calls (in a replay's lockstep,
+    its rounds), and the advice and the tracker's row are what each gives alone, after the other."""
+    from model.analysis.advice import draft_advice
+    from model.analysis.surrogate_tracker import optimum_row
+    data, learner, _, _ = learned
+    adaptive = learner.apply(plant)
+    s = AdviceSettings()
+    calls = _count_solver_calls(monkeypatch)
 
     def n_calls(f):
         c0 = calls[0]
@@ -466,18 +473,11 @@ def test_searches_beside_each_other_are_each_alone_and_keep_their_beyond(learned
     """``optimize.searches``: two searches on one evaluator (one kept to a stretch of set points, one
     not) and an extra set point in no more solver calls than the longer one alone; each answer (set
     point, COP, the beyond-check) is the one it gives alone on an evaluator of its own."""
-    import model.vcycle as vcycle
     from model.optimize import search, searches
     _, _, ev0, _ = learned
     rows, w = ev0.rows, ev0.w
     lo, hi = 8.0, 19.0
-    calls = [0]
-    solve = vcycle.solve_many
-
-    def counted(*a, **k):
-        calls[0] += 1
-        return solve(*a, **k)
-    monkeypatch.setattr(vcycle, "solve_many", counted)
+    calls = _count_solver_calls(monkeypatch)
 
     def fresh():
         e = Evaluator(rows, w, plant)

@@ -293,10 +293,19 @@ class Evaluator:
             return g
         return None
 
+    @staticmethod
+    def _key(sp: float | None) -> float | None:
+        """The cache's key of set point ``sp`` (None: the rows' own)."""
+        return None if sp is None else round(float(sp), 9)
+
+    def holds(self, sps) -> bool:
+        """Whether every set point of ``sps`` is cached (``at_many`` would not solve)."""
+        return all(self._key(sp) in self._cache for sp in sps)
+
     def at(self, sp: float | None, rows: np.ndarray | None = None) -> Point:
         """Figures at set point ``sp`` [bar(g)] (None: each row's own p_m_sp). ``rows`` picks a
         subset (not cached)."""
-        key = None if sp is None else round(float(sp), 9)
+        key = self._key(sp)
         if rows is None and key in self._cache:
             return self._cache[key]
         if batch.VECTORISED:
@@ -341,7 +350,7 @@ class Evaluator:
     def at_many(self, sps) -> list[Point]:
         """``at`` for several set points (None: the rows' own); with VECTORISED the ones not cached
         yet are solved in one call of the vectorised solver."""
-        keys = [None if sp is None else round(float(sp), 9) for sp in sps]
+        keys = [self._key(sp) for sp in sps]
         if not batch.VECTORISED:
             return [self.at(sp) for sp in sps]
         todo = list(dict.fromkeys(k for k in keys if k not in self._cache))
@@ -884,7 +893,7 @@ def _drive(ev: Evaluator, steps: list, extra: list = ()) -> list:
             except Exception as exc:        # noqa: BLE001 -- handed to the caller as the search's result
                 out[i] = exc
                 return
-            if any(round(float(x), 9) not in ev._cache for x in pts):
+            if not ev.holds(pts):
                 asks[i] = pts
                 return
 
@@ -904,7 +913,8 @@ def _drive(ev: Evaluator, steps: list, extra: list = ()) -> list:
 def searches(ev: Evaluator, lo: float, hi: float, specs: list, extra: list = (),
              coarse_step: float = COARSE_STEP, xtol: float = XTOL) -> list:
     """Several ``search``es over one evaluator and range, each spec (feasible, score); per spec its
-    (set point, Point), or the exception it raised (OptimizationError where no candidate solves).
+    (set point, Point), or the exception it raised (OptimizationError where no candidate solves; the
+    caller raises what it cannot take).
     ``extra``: further set points to solve on the way (cached in ``ev``). With the vectorised
     solver the searches take their steps together, so that each step is one solver call for all of
     them (in a replay's lockstep, the advice's search and the surrogate tracker's cost the rounds of
@@ -917,7 +927,7 @@ def searches(ev: Evaluator, lo: float, hi: float, specs: list, extra: list = (),
         for feasible, score in specs:
             try:
                 out.append(search(ev, lo, hi, coarse_step, xtol, feasible=feasible, score=score))
-            except OptimizationError as exc:
+            except Exception as exc:        # noqa: BLE001 -- as the vectorised path: the search's result
                 out.append(exc)
         return out
     return _drive(ev, [_search_steps(ev, lo, hi, coarse_step, xtol, f, s) for f, s in specs], list(extra))

@@ -509,6 +509,27 @@ def test_searches_beside_each_other_are_each_alone_and_keep_their_beyond(learned
     assert abs(none[1][0] - alone[1][0]) <= SOLVER_SP_BAR
 
 
+def test_searches_on_the_scalar_path_are_the_searches_one_after_the_other(learned, plant, monkeypatch):
+    """Without the vectorised solver ``searches`` runs each search alone, in order, and hands back
+    a search's exception as its result, as the vectorised path does."""
+    import model.batch as batch
+    from model.optimize import search, searches
+    monkeypatch.setattr(batch, "VECTORISED", False)
+    _, _, ev0, _ = learned
+    rows, w = ev0.rows.iloc[:2], ev0.w[:2]
+
+    def feasible(p):
+        return p.sp is not None and p.sp <= 11.0
+    a = Evaluator(rows, w, plant)
+    a.at_many([10.0])
+    sp_a, p_a = search(a, 8.0, 19.0, feasible=feasible)
+    got = searches(Evaluator(rows, w, plant), 8.0, 19.0, [(feasible, None), (lambda p: False, None)],
+                   extra=[10.0])
+    assert got[0][0] == sp_a and got[0][1].COP == p_a.COP
+    assert str(got[1]) == ("no set point in the range solves every sample of the window within "
+                           "the trusted region")
+
+
 def test_the_bins_stacked_statistics_are_the_bin_by_bin_ones():
     """The local fits' per-bin statistics live in two stacked arrays, so that a decay is one
     multiplication: after adds and decays (more bins than the first allocation) every bin's

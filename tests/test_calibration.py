@@ -92,6 +92,60 @@ def test_initial_calibration_recovers_CF_eva_and_warns_about_condenser(initial, 
     assert res.model_evaluations > res.iterations > 0 and res.run_time_s > 0
 
 
+CAL_WARM_SE_SHARE = 0.1   # warm- against cold-started calibration: an identifiable factor within this
+#                           share of its standard error (the objective within the spec's own tolerance)
+CAL_WARM_SHARE = 0.9      # rows of a seeded evaluation answered on the warm path, at least
+
+
+def test_initial_calibration_starts_each_model_evaluation_from_the_last(plant, synth, initial, monkeypatch):
+    """Every model evaluation of the initial calibration after the first starts each row from its
+    solution at the start values (the factors stay near enough: nearly every row stays on the warm
+    path), the outputs at given factors do not depend on what was evaluated before them (the
+    finite differences see no start-dependent noise), and the result is the cold-started one's: the
+    objective within the spec's tolerance (where the optimizer stops either way), the factor the data
+    determine (CF_eva) within CAL_WARM_SE_SHARE of its standard error, warnings on the same factors."""
+    import model.calibration as cal
+    _, _, _, data = initial
+    spec = DEFAULT_SPECS["initial"]
+    assert not spec.fast
+    real = cal.simulate_many
+    calls = []
+
+    def spy(rows, params, *a, seed=None, **k):
+        cols, v = real(rows, params, *a, seed=seed, **k)
+        calls.append((seed is not None, v.warm_rows, len(v)))
+        return cols, v
+
+    monkeypatch.setattr(cal, "simulate_many", spy)
+    warm = calibrate(data, plant, spec)
+    monkeypatch.setattr(cal, "simulate_many", lambda rows, params, *a, seed=None, **k: real(rows, params, *a, **k))
+    cold = calibrate(data, plant, spec)
+    assert len(calls) == warm.model_evaluations > 10
+    assert [s for s, _, _ in calls] == [False] + [True] * (len(calls) - 1)
+    seeded_rows = sum(m for s, _, m in calls if s)
+    assert sum(w for s, w, _ in calls if s) >= CAL_WARM_SHARE * seeded_rows
+    names = lambda r: [[n for n in r.params if n in w] for w in r.warnings]   # noqa: E731
+    assert names(warm) == names(cold)
+    assert abs(warm.objective - cold.objective) <= spec.tolerance * cold.objective
+    named = " ".join(cold.warnings)
+    free = [n for n in cold.params if n not in named]
+    assert free == ["CF_eva"]        # the condenser factors are not determined one by one (warned)
+    for name in free:
+        assert abs(warm.params[name] - cold.params[name]) <= CAL_WARM_SE_SHARE * cold.std_errors[name], name
+    # the same factors after other ones: the same numbers to the bit
+    monkeypatch.setattr(cal, "simulate_many", real)
+    prob = cal._Problem(data, plant, spec)
+    theta0 = np.array([p.start for p in spec.parameters])
+    prob.select_rows(prob.outputs(theta0))
+    t1, t2 = theta0 * 1.2, theta0 * 0.8
+    first = prob.outputs(t1)
+    prob.outputs(t2)
+    again = prob.outputs(t1)
+    for c in prob.model_cols:
+        assert np.isfinite(first[c]).all()
+        np.testing.assert_array_equal(again[c], first[c])
+
+
 @pytest.mark.parametrize("seed", [2, 21])
 def test_condenser_warning_does_not_hinge_on_one_correlation(plant, seed):
     """On these seeds no pair of condenser factors passes |r| = 0.95 (r ~ 0.945-0.949), yet the

@@ -97,7 +97,7 @@ CAL_WARM_SE_SHARE = 0.1   # warm- against cold-started calibration: an identifia
 CAL_WARM_SHARE = 0.9      # rows of a seeded evaluation answered on the warm path, at least
 
 
-def test_initial_calibration_starts_each_model_evaluation_from_the_last(plant, synth, initial, monkeypatch):
+def test_initial_calibration_starts_each_model_evaluation_from_the_first(plant, synth, initial, monkeypatch):
     """Every model evaluation of the initial calibration after the first starts each row from its
     solution at the start values (the factors stay near enough: nearly every row stays on the warm
     path), the outputs at given factors do not depend on what was evaluated before them (the

@@ -57,7 +57,6 @@ class Subscriber:
 
     def __init__(self, port: int, topic: str, client_id: str = "test-host") -> None:
         self.messages: list[tuple[str, bytes, bool]] = []      # topic, payload, retained
-        self.redelivered = 0                                    # the broker's DUP redeliveries dropped
         self.cond = threading.Condition()
         self.c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
                              clean_session=False)
@@ -74,7 +73,6 @@ class Subscriber:
                 # the broker's redelivery (DUP set) of a message whose PUBACK from this session did
                 # not reach it before it stopped: QoS 1 is at least once on this hop, and a reader
                 # drops it. (A publisher's resend reaches subscribers without DUP: still counted.)
-                self.redelivered += 1
                 return
             self.messages.append(msg)
             self.cond.notify_all()

@@ -116,17 +116,15 @@ class PropertyTables:
         s_lo = self._s.ev(x, np.zeros_like(x))
         s_hi = self._s.ev(x, np.full_like(x, THETA_MAX))
         ok &= (s >= s_lo) & (s <= s_hi)
-        # Newton in theta on the monotone s(theta), safeguarded by bisection, on the rows not yet
-        # converged; started from a linear interpolation of s over a coarse theta grid
-        grid = THETA_MAX * np.linspace(0.0, 1.0, 12) ** 2
-        sg = np.stack([self._s.ev(x, np.full_like(x, g)) for g in grid], axis=1)
-        k = np.clip((sg < s[:, None]).sum(axis=1) - 1, 0, len(grid) - 2)
-        r = np.arange(len(x))
-        s0, s1 = sg[r, k], sg[r, k + 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            frac = np.clip(np.where(s1 > s0, (s - s0) / (s1 - s0), 0.5), 0.0, 1.0)
-        a, b = grid[k], grid[k + 1]
-        th = np.where(ok, a + frac * (b - a), 0.0)
+        # Newton in theta on the monotone, concave s(theta) (ds/dtheta = c_p/T), safeguarded by
+        # bisection, on the rows not yet converged; started from the ideal-gas step off saturation
+        # with the saturated vapour's c_p: theta0 = T_sat (exp((s - s_g) / c_p) - 1)
+        T_sat = self._sat["T"](x)
+        cp0 = T_sat * self._s.ev(x, np.zeros_like(x), dy=1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            th0 = T_sat * np.expm1(np.where(cp0 > 0, (s - s_lo) / cp0, 0.0))
+        th = np.where(ok, np.clip(np.nan_to_num(th0, nan=0.0, posinf=THETA_MAX), 0.0, THETA_MAX), 0.0)
+        a, b = np.zeros_like(x), np.full_like(x, THETA_MAX)
         act = np.flatnonzero(ok)
         for _ in range(NEWTON_ITER):
             if not len(act):
@@ -139,10 +137,12 @@ class PropertyTables:
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(df > 0, f / df, 0.0)
             nxt = ta - step
-            nxt = np.where((nxt > aa) & (nxt < bb), nxt, 0.5 * (aa + bb))
+            # a row on its root (f == 0: step 0, on the bracket's end) stays there; a Newton step
+            # that leaves the bracket bisects it
+            nxt = np.where(((nxt > aa) & (nxt < bb)) | (f == 0), nxt, 0.5 * (aa + bb))
             th[act], a[act], b[act] = nxt, aa, bb
             act = act[np.abs(nxt - ta) > 1e-9]
-        T = self._sat["T"](x) + th
+        T = T_sat + th
         h = self._h.ev(x, th)
         rho = self._rho.ev(x, th)
         nan = np.nan

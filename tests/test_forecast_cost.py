@@ -280,6 +280,31 @@ def test_uncertain_component_averages_over_sigma_points():
     assert plan.interior
 
 
+def test_cost_curve_on_arrays_is_the_scalar_curve_element_by_element():
+    """The cycle plan evaluates the curve on large arrays (extrapolated elements only where needed):
+    each element is the scalar call's number to the bit, on both sides of the points and inside;
+    NaN stays NaN."""
+    c = CostCurve([0.0, 2e-3, 4e-3, 7e-3], [0.0, 50.0, 120.0, 300.0])
+    y = np.array([-3e-3, -1e-12, 0.0, 1e-3, 2e-3, 3.3e-3, 7e-3, 7e-3 + 1e-12, 9e-3, np.nan]).reshape(2, 5)
+    got = c(y)
+    assert got.shape == y.shape
+    ref = np.array([c(float(v)) for v in y.ravel()]).reshape(y.shape)
+    assert np.array_equal(got, ref, equal_nan=True)
+    assert got[0, 0] == pytest.approx(-75.0) and got[1, 3] == pytest.approx(420.0)
+
+
+def test_stacked_sigma_points_cost_what_each_costs_alone():
+    """``cycle_cost_eur`` of an uncertain component (its sigma points in one set of array
+    operations) is the weighted sum of its variants' costs computed one at a time, to rounding."""
+    import dataclasses
+    fit = dataclasses.replace(law("kern_seaton", 3e-3, 0.2e-3, 15.0), cov=np.diag([1e-4, 2e-5, 0.02]) ** 2)
+    curve = CostCurve([0.0, 1e-3, 3e-3], [0.0, 40.0, 150.0])
+    comp = FoulingComponent(fit, 0.3, curve, uncertain=True)
+    T = np.geomspace(0.25, 365.0, 50)
+    alone = sum(w * cycle_cost_eur([dataclasses.replace(v, uncertain=False)], T) for w, v in comp.variants())
+    assert np.allclose(cycle_cost_eur([comp], T), alone, rtol=1e-12, atol=0.0)
+
+
 def test_plan_inputs_are_checked_and_the_date_is_reset_plus_t_cip():
     comp = FoulingComponent(law("linear", 0.0, 0.2e-3), 0.2, CostCurve([0.0, 1e-3], [0.0, 40.0]))
     with pytest.raises(CostError, match="needs at least one fouling component"):

@@ -227,11 +227,20 @@ class CostCurve:
         x, f = self.levels, self.eur_per_day
         y = np.asarray(y, dtype=float)
         out = np.interp(y, x, f)
-        lo_slope = (f[1] - f[0]) / (x[1] - x[0])
-        hi_slope = (f[-1] - f[-2]) / (x[-1] - x[-2])
-        out = np.where(y < x[0], f[0] + lo_slope * (y - x[0]), out)
-        out = np.where(y > x[-1], f[-1] + hi_slope * (y - x[-1]), out)
-        return float(out) if out.ndim == 0 else out
+        if out.ndim == 0:
+            if y < x[0]:
+                out = f[0] + (f[1] - f[0]) / (x[1] - x[0]) * (y - x[0])
+            elif y > x[-1]:
+                out = f[-1] + (f[-1] - f[-2]) / (x[-1] - x[-2]) * (y - x[-1])
+            return float(out)
+        # the extrapolated elements only (the cycle plan's ~6,000 calls a replay on arrays of up to
+        # ~10^5 levels, most of them inside the points): the same numbers, element by element
+        lo, hi = y < x[0], y > x[-1]
+        if lo.any():
+            out[lo] = f[0] + (f[1] - f[0]) / (x[1] - x[0]) * (y[lo] - x[0])
+        if hi.any():
+            out[hi] = f[-1] + (f[-1] - f[-2]) / (x[-1] - x[-2]) * (y[hi] - x[-1])
+        return out
 
 
 def compressor_cost_curve(R_K_per_kW, COP, Q_sink_kW: float, price_eur_per_MWh: float,
@@ -550,14 +559,23 @@ def _stacked_cost(members, T) -> np.ndarray:
     ct = np.minimum(np.maximum(tau, 0.0), T3)
     edges = np.concatenate([np.zeros((V, m, 1)), ct, np.broadcast_to(T3, (V, m, 1))], axis=2)
     a, h = edges[:, :, :-1, None], np.diff(edges, axis=2)[:, :, :, None]
-    tau = (a + h * _GL16_X[None, None, None, :]).reshape(V, m, -1)
+    # (the largest arrays of the cycle plan, V x m x 16 per level: each operation of the expressions
+    # a + h x, yi - (yi - yp) exp(-k tau) and f(level) w in place in one buffer, the same numbers)
+    tau = h * _GL16_X[None, None, None, :]
+    tau += a
+    tau = tau.reshape(V, m, -1)
     wts = (h * _GL16_W[None, None, None, :]).reshape(V, m, -1)
     # levels(T, tau): growth from y_post
     if law == "kern_seaton":
-        lv = yi3 - (yi3 - yp) * np.exp(-k3 * tau)
+        lv = np.multiply(-k3, tau)
+        np.exp(lv, out=lv)
+        lv *= yi3 - yp
+        np.subtract(yi3, lv, out=lv)
     else:
         lv = yp + r03 * tau
-    return (np.asarray(f(lv)) * wts).sum(axis=2)
+    fl = f(lv)          # (a CostCurve: a new array)
+    fl *= wts
+    return fl.sum(axis=2)
 
 
 def _cycle_cost(expanded, T) -> np.ndarray:

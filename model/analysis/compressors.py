@@ -582,8 +582,11 @@ class _BinStats:
         ip = np.floor(pi / self.bin_pi).astype(int)
         jn = np.floor(n / self.bin_n).astype(int)
         keys = list(zip(ip.tolist(), jn.tolist()))
+        rows: dict = {}             # bin -> its samples' positions, ascending (a mask's rows)
+        for pos, key in enumerate(keys):
+            rows.setdefault(key, []).append(pos)
         for key in set(keys):
-            m = np.array([k == key for k in keys])
+            m = np.array(rows[key])
             Xm, ym = X[m], y[m]
             i = self._row(key)
             self._A[i] += Xm.T @ Xm

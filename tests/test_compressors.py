@@ -99,6 +99,56 @@ def test_learner_state_round_trips(speed_peak, plant):
     assert again.coverage_distance("HS", [pi], [n])[0] == learner.coverage_distance("HS", [pi], [n])[0]
 
 
+@pytest.mark.parametrize("text", ["2024-03-01T00:00:00Z", "2024-03-01T00:00:00.000000001Z"])
+def test_observation_times_are_epoch_seconds_whatever_the_datetime_unit(speed_peak, plant, text):
+    """``t`` is epoch seconds whether pandas keeps the times in microseconds (most inputs under
+    pandas 3) or nanoseconds, from a timestamp column or a DatetimeIndex. Before stop 46 the
+    integer count was divided by 1e9 whatever its unit: t was epoch seconds / 1000 with
+    microseconds, and the learner forgot 1000 times too slowly."""
+    obs, _, _ = speed_peak
+    t0 = pd.Timestamp(text)
+    ts = pd.to_datetime(pd.Series([text] * 3), utc=True) + pd.to_timedelta([0, 60, 120], unit="s")
+    assert ts.dt.unit == ("ns" if text.endswith("1Z") else "us")
+    rows = pd.DataFrame({c: np.full(3, np.nan) for c in ("p_suc_LS", "T_suc_LS")})
+    want = np.array([t0.timestamp(), t0.timestamp() + 60, t0.timestamp() + 120])
+    t_col = observe(rows.assign(timestamp=ts), plant)["t"].to_numpy()
+    t_idx = observe(rows.set_index(pd.DatetimeIndex(ts.dt.tz_localize(None))), plant)["t"].to_numpy()
+    assert np.allclose(t_col, want, rtol=0, atol=1e-6) and np.allclose(t_idx, want, rtol=0, atol=1e-6)
+
+
+def test_the_learner_forgets_with_its_half_life_of_plant_time(speed_peak, plant):
+    """A batch ending one half-life after the last halves what was learned before it: every statistic's
+    weight is 0.5 x before + the new samples' (SPEC §9's exponential forgetting)."""
+    obs, _, _ = speed_peak
+    learner = CompressorLearner(plant)
+    first = obs.iloc[:300].copy()
+    learner.update(first)
+    before = {k: v.w for k, v in learner.stats.items()}
+    later = obs.iloc[300:600].copy()
+    # (the decay runs to the batch's last time)
+    later["t"] = later["t"] - later["t"].max() + first["t"].max() + learner.s.half_life_days * 86400.0
+    learner.update(later)
+    alone = CompressorLearner(plant)
+    alone.update(later)
+    for k, w in before.items():
+        assert w > 0 and learner.stats[k].w == pytest.approx(0.5 * w + alone.stats[k].w, rel=1e-12), k
+
+
+def test_a_state_from_before_stop_46_has_its_time_read_as_kiloseconds(speed_peak, plant):
+    """States written with pandas 3 before stop 46 hold t_last in epoch kiloseconds (no
+    ``t_unit``): read as seconds the next update's decay 0.5 ** (1.7e9 s / 60 days) would wipe
+    the learned statistics, so such a value is scaled; a state in seconds is read as it is."""
+    _, learner, _ = speed_peak
+    doc = learner.to_dict()
+    assert doc["t_unit"] == "s" and doc["t_last"] > 1e9
+    legacy = {k: v for k, v in doc.items() if k != "t_unit"}
+    legacy["t_last"] = doc["t_last"] / 1000.0
+    assert CompressorLearner.from_dict(legacy, plant).t_last == pytest.approx(doc["t_last"], rel=1e-15)
+    assert CompressorLearner.from_dict(doc, plant).t_last == doc["t_last"]
+    legacy["t_last"] = doc["t_last"]            # a legacy state written in seconds (pandas 2)
+    assert CompressorLearner.from_dict(legacy, plant).t_last == doc["t_last"]
+
+
 @pytest.mark.parametrize("location", ["condenser_outlet", "subcooler_outlet"])
 def test_T_c_as_condensate_or_subcooler_outlet(plant, location):
     """Both kinds of T_c sensor: told apart from T_sat(p_c) - T_c, and the HS mass flow (from the

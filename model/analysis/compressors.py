@@ -277,6 +277,22 @@ def _observe_row(fl: Fluid, p_e, p_m, p_c, T1, T2, T3, T4, Tc, sc_rows: bool, wa
     return h1, rho1, h2, h2s, h3, rho3, h4, h4s, sat_m.h_f, sat_m.h_g, m_hs
 
 
+def epoch_seconds(ts) -> np.ndarray:
+    """Epoch seconds (float) of timestamps: a Series or DatetimeIndex of datetimes (naive = UTC) or
+    anything ``pd.to_datetime`` reads. Whatever the datetime64 unit pandas chose: pandas 3 keeps
+    microseconds for most inputs (ISO text without sub-microsecond digits, epoch numbers), and
+    before stop 46 the integer count was divided by 1e9 as if it were nanoseconds, so that
+    ``observe``'s ``t`` was epoch seconds / 1000 and the learner's forgetting
+    (``half_life_days``) ran 1000 times too slowly."""
+    dtype = getattr(ts, "dtype", None)
+    if not (isinstance(dtype, pd.DatetimeTZDtype) or pd.api.types.is_datetime64_dtype(dtype)):
+        ts = pd.to_datetime(ts, utc=True)       # (text with offsets, epoch numbers, objects)
+    idx = pd.DatetimeIndex(ts)
+    if idx.tz is None:
+        idx = idx.tz_localize("UTC")
+    return idx.as_unit("ns").asi8 / 1e9
+
+
 def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings | None = None,
             T_c_location: str | None = None) -> pd.DataFrame:
     """Per sample of ``data`` (canonical columns of SPEC §4, degC, bar(g), m3/h, kW, rpm; only usable
@@ -306,10 +322,9 @@ def observe(data: pd.DataFrame, params: PlantParams, settings: LearningSettings 
     ls, hs = params.comp_LS, params.comp_HS
     out = {c: np.full(n, np.nan) for c in OBS_COLUMNS}
     if "timestamp" in data.columns:
-        out["t"] = pd.to_datetime(data["timestamp"], utc=True).astype("int64").to_numpy() / 1e9
+        out["t"] = epoch_seconds(data["timestamp"])
     elif isinstance(data.index, pd.DatetimeIndex):
-        out["t"] = data.index.tz_convert("UTC").astype("int64").to_numpy() / 1e9 \
-            if data.index.tz is not None else data.index.astype("int64").to_numpy() / 1e9
+        out["t"] = epoch_seconds(data.index)
     tab = get_tables(params.fluid)
     # measured subcooling T_sat(p_c) - T_c (the tables; HEOS for pressures outside them)
     sub = np.full(n, np.nan)
@@ -1084,6 +1099,23 @@ class LearnedCompressor(Compressor):
         return n, target / n
 
 
+LEGACY_KS_RANGE = (1e5, 1e8)     # a state without "t_unit" whose t_last lies here was written in ks
+
+
+def _t_last_of(d: dict) -> float | None:
+    """A state document's ``t_last`` in epoch seconds. Documents written before stop 46 carry no
+    ``t_unit``; with pandas 3 their times were epoch seconds / 1000 (``epoch_seconds``): such a
+    value (1e5-1e8: the years 1973-5138 in kiloseconds, 1970-1973 in seconds) is read as
+    kiloseconds, so that the first update after the upgrade decays the statistics by the time that
+    really passed instead of wiping them (or, with the time test, never learning again)."""
+    t = d.get("t_last")
+    if t is None or d.get("t_unit") == "s":
+        return t
+    t = float(t)
+    lo, hi = LEGACY_KS_RANGE
+    return t * 1000.0 if lo <= t < hi else t
+
+
 class CompressorLearner:
     """Learns eta_is and eta_vol (per stage) and the drive factors from observations.
 
@@ -1398,7 +1430,7 @@ class CompressorLearner:
         return {
             "format": "hp-edge-compressors/1",
             "settings": {f.name: getattr(self.s, f.name) for f in fields(self.s)},
-            "t_last": self.t_last, "n_seen": self.n_seen,
+            "t_last": self.t_last, "t_unit": "s", "n_seen": self.n_seen,
             "stats": {f"{st}.{c}": v.to_dict() for (st, c), v in self.stats.items()},
             "bins": {f"{st}.{c}": v.to_dict() for (st, c), v in self.bins.items()},
             "coverage": {st: v.to_dict() for st, v in self.coverage.items()},
@@ -1416,7 +1448,7 @@ class CompressorLearner:
             s = settings or LearningSettings.from_dict(
                 {k: v for k, v in d.get("settings", {}).items()})
             obj = cls(prior, s)
-            obj.t_last = d.get("t_last")
+            obj.t_last = _t_last_of(d)
             obj.n_seen = int(d.get("n_seen", 0))
             for key, v in d["stats"].items():
                 st, c = key.split(".")

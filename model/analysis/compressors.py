@@ -1107,7 +1107,8 @@ def _t_last_of(d: dict) -> float | None:
     ``t_unit``; with pandas 3 their times were epoch seconds / 1000 (``epoch_seconds``): such a
     value (1e5-1e8: the years 1973-5138 in kiloseconds, 1970-1973 in seconds) is read as
     kiloseconds, so that the first update after the upgrade decays the statistics by the time that
-    really passed instead of wiping them (or, with the time test, never learning again)."""
+    really passed instead of wiping them. A value in seconds (written under pandas 2, whose
+    datetimes were nanoseconds) is read as it is."""
     t = d.get("t_last")
     if t is None or d.get("t_unit") == "s":
         return t

@@ -147,6 +147,11 @@ def test_a_state_from_before_stop_46_has_its_time_read_as_kiloseconds(speed_peak
     assert CompressorLearner.from_dict(doc, plant).t_last == doc["t_last"]
     legacy["t_last"] = doc["t_last"]            # a legacy state written in seconds (pandas 2)
     assert CompressorLearner.from_dict(legacy, plant).t_last == doc["t_last"]
+    # a damaged time is refused at load, not kept to freeze the learner (no sample is later than NaN)
+    from model.analysis.compressors import LearningError
+    for bad in (float("nan"), "soon"):
+        with pytest.raises(LearningError, match="compressor state"):
+            CompressorLearner.from_dict({**doc, "t_last": bad}, plant)
 
 
 @pytest.mark.parametrize("location", ["condenser_outlet", "subcooler_outlet"])

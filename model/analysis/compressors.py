@@ -1110,9 +1110,13 @@ def _t_last_of(d: dict) -> float | None:
     really passed instead of wiping them. A value in seconds (written under pandas 2, whose
     datetimes were nanoseconds) is read as it is."""
     t = d.get("t_last")
-    if t is None or d.get("t_unit") == "s":
-        return t
+    if t is None:
+        return None
     t = float(t)
+    if not math.isfinite(t):        # (a damaged state: no later sample would pass the time test)
+        raise ValueError(f"t_last must be a finite number of epoch seconds, got {d.get('t_last')!r}")
+    if d.get("t_unit") == "s":
+        return t
     lo, hi = LEGACY_KS_RANGE
     return t * 1000.0 if lo <= t < hi else t
 

@@ -352,24 +352,26 @@ def solve_merged(reqs: list[dict]) -> list[VResult]:
     starts = ends - np.asarray(sizes)
     n = int(ends[-1]) if len(ends) else 0
     cols = {c: np.concatenate([x[c] for x in cols_l]) for c in cols_l[0]}
-    pairs, member = [], []
+    pairs, member, ids = [], [], {}
     for r in reqs:                             # one stacked member per distinct compressor pair
         key = (id(r["params"].comp_LS), id(r["params"].comp_HS))
-        ids = [(id(a.comp_LS), id(a.comp_HS)) for a in pairs]
         if key not in ids:
+            ids[key] = len(pairs)
             pairs.append(r["params"])
-            ids.append(key)
-        member.append(ids.index(key))
+        member.append(ids[key])
     group = np.repeat(np.asarray(member, dtype=np.intp), sizes)
     comps = (Stacked([p.comp_LS for p in pairs]), Stacked([p.comp_HS for p in pairs]))
 
     def per_row(f):
-        return np.concatenate([np.broadcast_to(np.asarray(f(r, m), dtype=float), (m,))
-                               for r, m in zip(reqs, sizes)])
+        # each call's value (a number, or one per row) over its rows; numbers alone repeated at once
+        vals = [f(r, m) for r, m in zip(reqs, sizes)]
+        if all(isinstance(v, (float, int)) and not isinstance(v, bool) for v in vals):
+            return np.repeat(np.asarray(vals, dtype=float), sizes)
+        return np.concatenate([np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v, m in zip(vals, sizes)])
 
     R = per_row(lambda r, m: r["params"].R_th_f if r.get("R_th_f") is None else r["R_th_f"])
-    cf = np.stack([per_row(lambda r, m, k=k: getattr(r["params"], k) * (np.ones(m) if r.get("cond_factor") is None
-                                                                       else r["cond_factor"]))
+    cf = np.stack([per_row(lambda r, m, k=k: getattr(r["params"], k) if r.get("cond_factor") is None
+                           else getattr(r["params"], k) * r["cond_factor"])
                    for k in ("CF_DSH", "CF_con", "CF_SC")])
     cf_dp = per_row(lambda r, m: r["params"].CF_dp_f)
     keys = sorted({k for r in reqs for k in (r.get("deltas") or {})})

@@ -104,7 +104,8 @@ def take_state(st: dict, gi) -> dict:
     """The guess rows gi (-1: none) of a state."""
     gi = np.asarray(gi, dtype=np.intp)
     none = gi < 0
-    out = {k: v[np.where(none, 0, gi)] if len(v) else np.zeros(len(gi), v.dtype) for k, v in st.items()}
+    at = np.where(none, 0, gi)
+    out = {k: v[at] if len(v) else np.zeros(len(gi), v.dtype) for k, v in st.items()}
     out["branch"][none] = -1
     out["in_branch"][none] = -1
     return out

@@ -435,7 +435,7 @@ class Evaluator:
         return self._in
 
     def _guess_for(self, sp):
-        """(warm-start state, its rows, row index into it) to start set point ``sp`` from: this
+        """(warm-start state, its rows, its per-row keys, row index into it) to start set point ``sp`` from: this
         evaluator's own solution at the nearest set point within GUESS_BAR, else the other
         evaluator's (``guess_from``: other parameters) at the same or nearest one, else the seed
         evaluator's (other rows, each row from the nearest) likewise; None when there is none. For
@@ -446,8 +446,8 @@ class Evaluator:
             if sp is None:
                 p = ev._cache.get(None)
                 if p is not None and p.has_vres and ev is not self:
-                    st, m = _state_of(p)
-                    return st, m, (np.arange(m) if rmap is None else rmap)
+                    st, m, rk = _state_of(p)
+                    return st, m, rk, (np.arange(m) if rmap is None else rmap)
                 continue
             # the nearest cached set point with a solver result (of the two beside sp: the
             # distances of set points on one side grow with their distance, ties go to the
@@ -456,8 +456,8 @@ class Evaluator:
             i = bisect.bisect_left(keys, sp)
             near = [(abs(x - sp), x) for x in keys[max(i - 1, 0):i + 1] if abs(x - sp) <= GUESS_BAR]
             if near:
-                st, m = _state_of(ev._cache[min(near)[1]])
-                return st, m, (np.arange(m) if rmap is None else rmap)
+                st, m, rk = _state_of(ev._cache[min(near)[1]])
+                return st, m, rk, (np.arange(m) if rmap is None else rmap)
         return None
 
     def _guesses(self, sps: list, idx: np.ndarray):
@@ -475,31 +475,46 @@ class Evaluator:
             if g is None:
                 index.append(np.full(n, -1))
             else:
-                parts.append(g[:2])
-                index.append(base + g[2])
+                parts.append(g[:3])
+                index.append(base + g[3])
                 base += g[1]
         if not parts:
             return None, None
         if len(parts) == 1:
-            return WarmStart(*parts[0]), index[0] if len(index) == 1 else np.concatenate(index)
-        # the states stacked as whole VResults' dicts were: the per-row arrays one after the
-        # other, anything else the first part's
-        from .vcycle import stack_rows
-        state = stack_rows([st for st, _ in parts], [m for _, m in parts])
+            return WarmStart(*parts[0][:2]), index[0] if len(index) == 1 else np.concatenate(index)
+        # the states stacked as ``vcycle.stack_rows`` does (its per-row test made once per solver
+        # result, in ``_row_keys``): a key per-row in every part concatenated, else the first part's
+        first, _, rk0 = parts[0]
+        state = {}
+        for k, x in first.items():
+            if k in rk0 and all(k in rk for _, _, rk in parts):
+                state[k] = np.concatenate([st[k] for st, _, _ in parts])
+            else:
+                state[k] = x
         return WarmStart(state, base), np.concatenate(index)
 
 
-def _state_of(p: Point) -> tuple[dict, int]:
-    """(``p.vres.state``, ``len(p.vres)``) without taking the point's rows of its call's result when
-    they are not taken yet: the state's per-row arrays sliced to them (the same numbers as
-    ``take_rows``' copies)."""
+def _row_keys(v) -> frozenset:
+    """The keys of a solver result's warm-start state whose values are per-row arrays (kept with
+    the result: a call's result serves many points)."""
+    rk = v.__dict__.get("_row_keys")
+    if rk is None:
+        m = len(v)
+        rk = v.__dict__["_row_keys"] = frozenset(
+            k for k, x in v.state.items() if isinstance(x, np.ndarray) and x.shape[:1] == (m,))
+    return rk
+
+
+def _state_of(p: Point) -> tuple[dict, int, frozenset]:
+    """(``p.vres.state``, ``len(p.vres)``, the state's per-row keys) without taking the point's rows
+    of its call's result when they are not taken yet: the state's per-row arrays sliced to them
+    (the same numbers as ``take_rows``' copies)."""
     v = p._vres
     if type(v) is tuple:
         whole, a, b = v
-        m = len(whole)
-        return {k: (x[a:b] if isinstance(x, np.ndarray) and x.shape[:1] == (m,) else x)
-                for k, x in whole.state.items()}, b - a
-    return v.state, len(v)
+        rk = _row_keys(whole)
+        return {k: (x[a:b] if k in rk else x) for k, x in whole.state.items()}, b - a, rk
+    return v.state, len(v), _row_keys(v)
 
 
 def draw_points(rows: pd.DataFrame, w: np.ndarray, params: PlantParams, sps: list, R_th_f,

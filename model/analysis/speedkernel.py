@@ -423,9 +423,12 @@ def run(tables: tuple, g, c, dl, target, pi, n0, n_lo: float, n_hi: float):
     target = np.ascontiguousarray(target, dtype=float)
     pi = np.ascontiguousarray(pi, dtype=float)
     rows = target.shape[0]
-    C = np.empty((rows, 6))
-    for k in range(6):
-        C[:, k] = c[k]
+    if isinstance(c, np.ndarray) and c.shape == (6, rows):
+        C = np.ascontiguousarray(c.T)         # (a stacked member's curves per row: no copy)
+    else:
+        C = np.empty((rows, 6))
+        for k in range(6):
+            C[:, k] = c[k]
     DL = np.zeros((rows, 6))
     if dl is not None:
         for k in range(6):

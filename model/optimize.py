@@ -435,11 +435,11 @@ class Evaluator:
         return self._in
 
     def _guess_for(self, sp):
-        """(warm-start state, its rows, its per-row keys, row index into it) to start set point ``sp`` from: this
-        evaluator's own solution at the nearest set point within GUESS_BAR, else the other
-        evaluator's (``guess_from``: other parameters) at the same or nearest one, else the seed
-        evaluator's (other rows, each row from the nearest) likewise; None when there is none. For
-        None (the rows' own set points) only another evaluator's own set points serve."""
+        """(warm-start state, its rows, its per-row keys, row index into it) to start set point
+        ``sp`` from: this evaluator's own solution at the nearest set point within GUESS_BAR, else
+        the other evaluator's (``guess_from``: other parameters) at the same or nearest one, else
+        the seed evaluator's (other rows, each row from the nearest) likewise; None when there is
+        none. For None (the rows' own set points) only another evaluator's own set points serve."""
         for ev, rmap in ((self, None), (self._other, None), (self._seed, self._seed_map)):
             if ev is None:
                 continue

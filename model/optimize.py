@@ -247,7 +247,7 @@ class Evaluator:
         self._cache: dict[float | None, Point] = {}
         self._warm_keys: list[float] = []   # the cached set points whose points hold a solver result, sorted
         self._in: InputColumns | None = None
-        self._own_sp = np.asarray(self.rows["p_m_sp"], dtype=float) if "p_m_sp" in self.rows else None
+        self._own_sp = self._input_columns()["p_m_sp"] if "p_m_sp" in self.rows else None
         self._mem: list[list] = [[] for _ in range(len(self.rows))]     # per row: [(sp, row)]
         self._plateau: list = [None] * len(self.rows)                   # per row: (p_m_barg, row)
         # the vectorised solver's plateaus: per row the floating p_m [bar(g)] (NaN: none yet) and

@@ -647,6 +647,42 @@ def test_numeric_and_floats_are_to_numeric_to_the_bit():
         floats(dup["V_source"])
 
 
+def test_a_frame_of_the_input_columns_exactly_is_read_as_one_block_to_the_bit():
+    """``matrix`` and ``InputColumns.of`` read a frame whose columns are the input columns exactly
+    (the representative rows, a window's numeric inputs) with one ``to_numpy`` of the frame: the
+    numbers, shape and memory order of the column-by-column reads (reductions add in the same
+    order), in new arrays (not the frame's), whatever the frame's blocks; an integer column converts
+    as alone; other frames take the column reads."""
+    rng = np.random.default_rng(11)
+    n = 53
+    one = pd.DataFrame(rng.normal(10.0, 3.0, (n, len(INPUT_COLUMNS))), columns=list(INPUT_COLUMNS))
+    mixed = pd.DataFrame({c: rng.normal(10.0, 3.0, n) for c in INPUT_COLUMNS}, index=np.arange(n) * 3)
+    mixed["V_sink"] = rng.integers(100, 200, n)
+    mixed.loc[mixed.index[4], "T_sink_in"] = np.nan
+    wider = mixed.assign(extra=1.0)
+    reordered = mixed[list(INPUT_COLUMNS)[::-1]]
+    for df in (one, mixed, wider, reordered, one.iloc[:0]):
+        ref = np.empty((len(INPUT_COLUMNS), len(df)))
+        for i, c in enumerate(INPUT_COLUMNS):
+            ref[i] = df[c].to_numpy(dtype=float)
+        ref = ref.T
+        got = matrix(df)
+        assert got.shape == ref.shape and got.flags.f_contiguous and np.array_equal(got, ref, equal_nan=True)
+        if len(df):
+            assert np.array_equal(np.nanstd(got, axis=0), np.nanstd(ref, axis=0), equal_nan=True)
+        assert np.array_equal(got.sum(axis=0), ref.sum(axis=0), equal_nan=True)
+        assert not np.shares_memory(got, df.to_numpy())
+        cols = InputColumns.of(df)
+        assert list(cols.columns) == list(INPUT_COLUMNS)
+        for c in INPUT_COLUMNS:
+            a = cols[c]
+            assert a.dtype == np.float64 and a.flags.c_contiguous
+            assert np.array_equal(a, df[c].to_numpy(dtype=float), equal_nan=True)
+            assert np.array_equal(np.cumsum(a), np.cumsum(df[c].to_numpy(dtype=float)), equal_nan=True)
+    part = InputColumns.of(mixed[["p_m_sp", "V_source"]])
+    assert list(part.columns) == ["V_source", "p_m_sp"]         # the columns it has, in INPUT_COLUMNS' order
+
+
 def test_a_merged_results_parts_are_its_rows(learned, plant):
     """``vcycle.split_rows`` (a merged call's parts as copied slices) is ``take_rows`` of each
     part's positions: every field and state array equal, new arrays."""

@@ -390,6 +390,40 @@ def test_a_prior_fit_of_a_flat_cycle_has_a_band_that_does_not_depend_on_where_th
 
 
 @pytest.mark.parametrize("law_", ["kern_seaton", "linear"])
+def test_the_upper_edges_written_out_quadratic_form_is_the_sums_to_the_bit(law_):
+    """``_upper_edge`` writes g' C g out term by term: the numbers of the sums
+    sum(g_i sum(c_ij g_j)) (Python's float sums from 0, left to right) at every t, through the
+    series near k t = 0 and far out."""
+    from scipy import special
+    rng = np.random.default_rng(5)
+    t = windows(10)
+    f = fit_fouling(t, ks(t) + rng.normal(0, NOISE, len(t)), np.full(len(t), NOISE), law=law_)
+    assert f.law == law_
+    q = float(special.stdtrit(max(f.dof, 1.0), 0.5 + 0.9 / 2.0))
+    c = [[float(x) for x in row] for row in np.asarray(f.cov, dtype=float)]
+    extra = f.s2 * f.se_typ ** 2
+
+    def ref(x):
+        ph = x if f.k == 0.0 else -math.expm1(-f.k * x) / f.k
+        if law_ == "kern_seaton":
+            series = -x * x / 2.0 + f.k * x ** 3 / 3.0 - f.k * f.k * x ** 4 / 8.0
+            d = series if (f.k == 0.0 or f.k * x < 1e-3) else (x * math.exp(-f.k * x) - ph) / f.k
+            g = [1.0, ph, f.r0 * d]
+        else:
+            g = [1.0, x]
+        var = 0
+        for gi, row in zip(g, c):
+            inner = 0
+            for cij, gj in zip(row, g):
+                inner = inner + cij * gj
+            var = var + gi * inner
+        return f.floor + f.a0 + f.r0 * ph + q * math.sqrt(max(var + extra, 0.0))
+    hi = f._upper_edge(0.9)
+    for x in [0.0, 1e-6, 1e-4, 0.5, *rng.uniform(0.0, 400.0, 40), t[-1], 30.0, 3650.0]:
+        assert hi(float(x)) == ref(float(x)), x
+
+
+@pytest.mark.parametrize("law_", ["kern_seaton", "linear"])
 def test_the_upper_edge_reach_bisects_on_is_the_prediction_bands(law_):
     """``reach`` bisects on a scalar form of the band's upper edge: the band's numbers, on both
     laws, through the series near k t = 0 and far out; and the crossing it finds is the band's."""

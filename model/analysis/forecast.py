@@ -254,19 +254,28 @@ class FoulingFit:
         extra = self.s2 * self.se_typ ** 2
         base, r0, k, ks = self.floor + self.a0, self.r0, self.k, self.law == "kern_seaton"
 
-        def hi(t: float) -> float:
-            if k == 0.0:
-                ph = t
-            else:
-                ph = -math.expm1(-k * t) / k
-            g = [1.0, ph]
-            if ks:
+        # g' C g with g = (1, phi, r0 dphi/dk) (Kern–Seaton) or (1, t) (linear): the sums
+        # sum(g_i sum(c_ij g_j)) written out, term by term in the same order (from 0)
+        if ks:
+            (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = c
+
+            def hi(t: float) -> float:
+                if k == 0.0:
+                    ph = t
+                else:
+                    ph = -math.expm1(-k * t) / k
                 x = k * t
                 series = -t * t / 2.0 + k * t ** 3 / 3.0 - k * k * t ** 4 / 8.0
-                g.append(r0 * (series if (k == 0.0 or x < 1e-3) else (t * math.exp(-x) - ph) / k))
-            else:
-                g[1] = t
-            var = sum(gi * sum(cij * gj for cij, gj in zip(row, g)) for gi, row in zip(g, c)) + extra
+                g2 = r0 * (series if (k == 0.0 or x < 1e-3) else (t * math.exp(-x) - ph) / k)
+                var = (0 + 1.0 * (0 + c00 * 1.0 + c01 * ph + c02 * g2) + ph * (0 + c10 * 1.0 + c11 * ph + c12 * g2)
+                       + g2 * (0 + c20 * 1.0 + c21 * ph + c22 * g2)) + extra
+                return base + r0 * ph + q * math.sqrt(max(var, 0.0))
+            return hi
+        (c00, c01), (c10, c11) = c
+
+        def hi(t: float) -> float:
+            ph = t if k == 0.0 else -math.expm1(-k * t) / k
+            var = (0 + 1.0 * (0 + c00 * 1.0 + c01 * t) + t * (0 + c10 * 1.0 + c11 * t)) + extra
             return base + r0 * ph + q * math.sqrt(max(var, 0.0))
         return hi
 

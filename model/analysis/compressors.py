@@ -710,9 +710,9 @@ class LocalCurves:
         self.n0 = math.floor(lo[1] / self.dn) * self.dn
         npi = int(math.ceil((hi[0] - self.p0) / self.dpi)) + 2
         nn = int(math.ceil((hi[1] - self.n0) / self.dn)) + 2
-        P, N = np.meshgrid(self.p0 + self.dpi * np.arange(npi), self.n0 + self.dn * np.arange(nn),
-                           indexing="ij")
-        nodes = np.column_stack([P.ravel(), N.ravel()])
+        # the grid's nodes row by row in pi ("ij" order): meshgrid's raveled arrays, without it
+        nodes = np.column_stack([np.repeat(self.p0 + self.dpi * np.arange(npi), nn),
+                                 np.tile(self.n0 + self.dn * np.arange(nn), npi)])
         near, w_all = _node_weights(nodes, cov, centres, h, np.array([s.margin_pi, s.margin_n]),
                                     0.5 * np.array([coverage.bin_pi, coverage.bin_n]))
         coef = np.full((len(nodes), 6), np.nan)

@@ -354,6 +354,37 @@ def test_steady_start_is_the_fixed_point_of_cleaning_and_growth(R_start, dR, tau
         assert float(fit.growth(y_post, tc)) == pytest.approx(y_post + 0.5 * (fit.y_inf - y_post), rel=1e-9)
 
 
+@settings(max_examples=80, deadline=None)
+@given(levels=st.lists(st.floats(0.0, 8e-3), min_size=2, max_size=9, unique=True),
+       r0=st.floats(1e-6, 1e-3), tau=st.floats(2.0, 200.0), R0=st.floats(0.0, 4e-3),
+       s=st.floats(0.05, 1.0), law_=st.sampled_from(["kern_seaton", "linear"]),
+       restart=st.sampled_from(["auto", "current"]))
+def test_a_cycles_cost_over_its_non_zero_pieces_is_the_cost_over_every_piece(levels, r0, tau, R0, s, law_,
+                                                                              restart):
+    """The cycle cost integrates only a window of whole pieces around each cycle's pieces of
+    non-zero length (``cost._pieces``; the others are exact zeros of the sum): the numbers of
+    integrating every piece, to the bit, for 1 to 10 pieces (past 8 every piece is kept), both laws,
+    both restarts, sigma points stacked and alone, levels below the start and out of reach."""
+    import dataclasses
+    import model.analysis.cost as C
+    levels = sorted(levels)
+    cost = CostCurve(levels, [1e4 * x * (1 + 0.3 * i) for i, x in enumerate(levels)])
+    cov = np.diag([1e-4, 2e-5, 0.02][: 3 if law_ == "kern_seaton" else 2]) ** 2
+    fit = dataclasses.replace(law(law_, R0, r0, tau), cov=cov)
+    comps = [FoulingComponent(fit, s, cost, restart=restart, uncertain=True),
+             FoulingComponent(fit, s, cost, restart=restart, name="alone")]
+    expanded = C._expand(comps)
+    T = np.concatenate([np.geomspace(0.25, 365.0, 40), np.linspace(3.0, 4.0, 21)])
+    got = C._cycle_cost(expanded, T)
+    orig = C._pieces
+    try:
+        C._pieces = lambda e: (e[:, :, :-1], np.diff(e, axis=2))
+        ref = C._cycle_cost(expanded, T)
+    finally:
+        C._pieces = orig
+    assert np.array_equal(got, ref)
+
+
 @pytest.mark.parametrize("law_, restart, cov", [
     ("kern_seaton", "auto", np.diag([1e-4, 2e-5, 0.02]) ** 2),
     ("kern_seaton", "current", np.diag([1e-4, 2e-5, 0.02]) ** 2),
@@ -380,3 +411,7 @@ def test_sigma_points_in_one_array_give_each_points_own_cycle_cost(law_, restart
     monkeypatch.setattr(C, "_runs", lambda ex: [(False, [v]) for v in ex])
     one_by_one = C._cycle_cost(expanded, T)
     assert np.array_equal(stacked, one_by_one)
+    # every piece integrated, also those of length 0 (``_pieces`` keeps the non-zero ones' window)
+    monkeypatch.setattr(C, "_pieces", lambda e: (e[:, :, :-1], np.diff(e, axis=2)))
+    every_piece = C._cycle_cost(expanded, T)
+    assert np.array_equal(stacked, every_piece)

@@ -162,6 +162,10 @@ def test_phi_of_many_k_is_phi_of_each():
     ks = np.concatenate([[0.0], np.geomspace(1e-5, 5.0, 40)])
     P = phi_many(t, ks)
     assert P.tobytes() == np.stack([phi(t, k) for k in ks]).tobytes()
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(0.0, 200.0, 301))
+    for ks in (rng.uniform(0.0, 3.0, 61), np.array([0.0]), np.array([0.7]), np.array([0.2, 0.0, 1e-9, 0.0])):
+        assert phi_many(t, ks).tobytes() == np.stack([phi(t, k) for k in ks]).tobytes()
 
 
 def _usable_reasons_by_loop(h: pd.DataFrame, on: np.ndarray, cip: np.ndarray, W: np.ndarray,

@@ -136,10 +136,17 @@ def phi(t, k: float):
 def phi_many(t, ks) -> np.ndarray:
     """``phi`` for each k of ``ks`` (K, n): the same element operations in one array."""
     t = np.asarray(t, dtype=float)
-    kc = np.asarray(ks, dtype=float)[:, None]
-    zero = kc == 0.0
+    k = np.asarray(ks, dtype=float)
+    zero = k == 0.0
+    kc = k[:, None]
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(zero, t, -np.expm1(-kc * t) / np.where(zero, 1.0, kc))
+        # -expm1(-k t) / k as expm1(-k t) / -k (IEEE division is exact in sign: the same
+        # numbers), in place; the rows of k = 0 then t
+        out = np.expm1(-kc * t)
+        out /= -np.where(zero, 1.0, k)[:, None]
+    if zero.any():
+        out[zero] = t
+    return out
 
 
 def dphi_dk(t, k: float):

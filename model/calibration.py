@@ -400,16 +400,30 @@ def evaporator_outputs(data: pd.DataFrame | dict, params: PlantParams) -> dict[s
 
     data : canonical inputs T_source_in, T_source_out [degC], V_source [m3/h].
     """
+    return _evaporator_from(_evaporator_rows(data, params), params)
+
+
+def _evaporator_rows(data, params: PlantParams) -> tuple:
+    """What ``evaporator_outputs`` computes of the rows alone (the water side's temperatures [K],
+    capacity flow, the rows it answers, the clean pressure drop): the same for every R_th,f and
+    CF_dp,f (a fouling calibration evaluates one window's rows ~20 times)."""
     T_in = np.asarray(data["T_source_in"], dtype=float) + T0
     T_out = np.asarray(data["T_source_out"], dtype=float) + T0
     V = np.asarray(data["V_source"], dtype=float) * M3H
     C = params.cp_w * params.rho_w * V
+    with np.errstate(invalid="ignore"):
+        ok = (C > 0) & (T_in > T_out)
+    return T_in, T_out, C, ok, params.dp_clean(V)
+
+
+def _evaporator_from(rows: tuple, params: PlantParams) -> dict[str, np.ndarray]:
+    """``evaporator_outputs`` of the rows' part ``_evaporator_rows``."""
+    T_in, T_out, C, ok, dp_clean = rows
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         e = np.exp(params.UA_eva / C)
         T_e = (T_out * e - T_in) / (e - 1.0)
-        ok = (C > 0) & (T_in > T_out)
         p_e = np.where(ok, p_sat(T_e, params.fluid, params.backend), np.nan) / BAR
-    dp = params.CF_dp_f * params.dp_clean(V) / BAR
+    dp = params.CF_dp_f * dp_clean / BAR
     return {"p_e_bar": p_e, "dp_source_bar": dp}
 
 
@@ -444,7 +458,8 @@ class _Problem:
         if (~finite).sum():
             self.dropped["missing value"] = int((~finite).sum())
         self.data = d.loc[finite]
-        self._cols: dict[str, np.ndarray] = {}     # self.data's columns as float arrays (per data)
+        # self.data's columns as float arrays, and what the residuals derive from them alone (per data)
+        self._cols: dict = {}
         self.model_cols = sorted({TARGETS[g.target][1] for g in spec.goals})
         self.last_good: dict[str, np.ndarray] = {}
         # the first model evaluation's solutions (``model.vcycle.VResult``, the rows of self.data):
@@ -465,11 +480,24 @@ class _Problem:
             a = self._cols[name] = self.data[name].to_numpy(dtype=float)
         return a
 
+    def _mean(self, name: str):
+        """``np.mean(self.col(name))``, computed once per ``self.data`` (an NRMSE's normaliser)."""
+        m = self._cols.get(("_mean", name))
+        if m is None:
+            m = self._cols[("_mean", name)] = np.mean(self.col(name))
+        return m
+
     def outputs(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         self.evals += 1
         par = apply_values(self.params, dict(zip(self.names, theta)))
         if self.spec.fast:
-            return evaporator_outputs({c: self.col(c) for c in EVAPORATOR_INPUTS}, par)
+            # the rows' part once per rows and water-side parameters (the calibrated ones are not)
+            key = (par.cp_w, par.rho_w, tuple(par.dp_clean_coef))
+            rows = self._cols.get(("_evaporator", key))
+            if rows is None:
+                rows = self._cols[("_evaporator", key)] = _evaporator_rows(
+                    {c: self.col(c) for c in EVAPORATOR_INPUTS}, par)
+            return _evaporator_from(rows, par)
         if self._inputs is None:
             self._inputs = InputColumns.of(self.data)
         # every row warm from its solution at the start values: a few Newton rounds instead of the
@@ -528,7 +556,7 @@ class _Problem:
                 prev = self.last_good.get(scol)
                 sim = np.where(bad, prev if prev is not None else meas, sim)
             self.last_good[scol] = sim
-            norm = np.mean(meas) if g.statistic == "nrmse" else 1.0
+            norm = self._mean(mcol) if g.statistic == "nrmse" else 1.0
             errs[g.target] = (sim - meas) / norm
         return errs
 

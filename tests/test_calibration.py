@@ -236,6 +236,39 @@ def test_fouling_nrmse_at_noise_level(initial, synth, plant):
         assert res.nrmse[k] <= at_truth[k] * NOISE_LEVEL_SLACK, k
 
 
+def test_fast_residuals_keep_the_rows_part_and_are_the_closed_form_to_the_bit(initial, synth):
+    """A fouling calibration evaluates one window's rows ~20 times: the fast path keeps what the
+    rows give alone (temperatures, capacity flow, clean pressure drop) and each NRMSE's mean once
+    per rows, and its outputs and errors are ``evaporator_outputs``' and the plain formula's to the
+    bit at every parameter value; after rows are dropped, those of the rows left."""
+    import model.calibration as C
+    _, _, fixed, _ = initial
+    sh, processed = synth
+    data = calibration_frame(sh.history, processed, next(iter(_windows(processed))))
+    spec = DEFAULT_SPECS["fouling"]
+    prob = C._Problem(data, fixed, spec)
+    for step in range(2):
+        for x in (np.array([0.0, 0.0]), np.array([0.3, 0.7]), np.array([1.0, 0.5])):
+            theta = prob.theta(x)
+            par = C.apply_values(fixed, dict(zip(prob.names, theta)))
+            ref = evaporator_outputs(prob.data, par)
+            got = prob.outputs(theta)
+            for c in ("p_e_bar", "dp_source_bar"):
+                assert got[c].tobytes() == ref[c].tobytes(), c
+            errs = prob.errors(theta)
+            for g in spec.goals:
+                mcol, scol = C.TARGETS[g.target]
+                meas = prob.data[mcol].to_numpy(dtype=float)
+                norm = np.mean(meas) if g.statistic == "nrmse" else 1.0
+                assert errs[g.target].tobytes() == ((ref[scol] - meas) / norm).tobytes(), g.target
+        keep = np.ones(len(prob.data), dtype=bool)
+        keep[::3] = False
+        out = prob.outputs(prob.theta(np.array([0.5, 0.5])))
+        out["p_e_bar"] = np.where(keep, out["p_e_bar"], np.nan)      # the model "fails" every third row
+        prob.select_rows(out)
+        assert len(prob.data) == keep.sum()
+
+
 def test_rank_deficiency_is_reported(initial, synth):
     """CF_eva and R_th,f act only through UA_eva: on p_e alone they cannot be separated."""
     _, _, fixed, _ = initial

@@ -274,7 +274,8 @@ class FoulingFit:
                 x = k * t
                 series = -t * t / 2.0 + k * t ** 3 / 3.0 - k * k * t ** 4 / 8.0
                 g2 = r0 * (series if (k == 0.0 or x < 1e-3) else (t * math.exp(-x) - ph) / k)
-                var = (0 + 1.0 * (0 + c00 * 1.0 + c01 * ph + c02 * g2) + ph * (0 + c10 * 1.0 + c11 * ph + c12 * g2)
+                var = (0 + 1.0 * (0 + c00 * 1.0 + c01 * ph + c02 * g2)
+                       + ph * (0 + c10 * 1.0 + c11 * ph + c12 * g2)
                        + g2 * (0 + c20 * 1.0 + c21 * ph + c22 * g2)) + extra
                 return base + r0 * ph + q * math.sqrt(max(var, 0.0))
             return hi

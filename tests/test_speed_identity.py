@@ -1127,3 +1127,41 @@ def test_samples_timestamps_are_isoformat(monkeypatch, chunk):
         assert list(isoformat(ts)) == [v.isoformat() for v in ts]
     assert isoformat(cases[0])[61] == "2024-03-01T01:01:00+00:00"
     assert isoformat(cases[2])[1] == "2024-02-29T10:00:00+00:00"
+
+
+def test_a_window_tasks_observation_columns_are_read_once_and_not_pickled(learned, plant):
+    """``WindowTask.obs_col``: pass 1, pass 2 and the window's samples read the same observation
+    columns; each is read once (the same array again), its values the column's ``to_numpy()``,
+    and a pickled task carries the frame only (the copy reads them anew)."""
+    from model.analysis.chain import WindowResult, WindowTask
+    data, *_ = learned
+    obs = observe(data.assign(timestamp=pd.to_datetime(data["timestamp"], utc=True)), plant)
+    task = WindowTask(res=WindowResult("", "", math.nan, len(data)), data=data, fixed=plant, obs=obs)
+    for name in ("pi_LS", "n_LS", "pi_HS", "n_HS"):
+        a = task.obs_col(name)
+        assert np.array_equal(a, obs[name].to_numpy(), equal_nan=True) and a.dtype == np.float64
+        assert task.obs_col(name) is a
+    copy = pickle.loads(pickle.dumps(task))
+    assert "_obs_cols" not in copy.__dict__ and "_obs_cols" in task.__dict__
+    assert np.array_equal(copy.obs_col("pi_HS"), task.obs_col("pi_HS"), equal_nan=True)
+
+
+def test_the_condenser_factor_from_the_callers_input_matrix_is_the_factor_to_the_bit(learned, plant):
+    """The chain hands ``condenser_factor`` the window's input matrix it has read once (from the
+    window's ``InputColumns``): the same factor, p_c error and representative solutions as the
+    factor that reads ``der`` itself."""
+    from model.analysis.chain import condenser_factor
+    from model.measured import derived
+    data, *_ = learned
+    der = derived(data, plant)
+    for c in INPUT_COLUMNS:
+        if c not in der.columns:
+            der[c] = data[c].to_numpy(dtype=float)
+    X = matrix(InputColumns.of(der))
+    assert np.array_equal(X, matrix(der), equal_nan=True) and X.flags.f_contiguous
+    sol_a, sol_b = [], []
+    a = condenser_factor(der, plant, 1.0, 8, solution=sol_a)
+    b = condenser_factor(der, plant, 1.0, 8, solution=sol_b, X=X)
+    assert math.isfinite(a[0]) and a == b
+    pd.testing.assert_frame_equal(sol_a[0][1], sol_b[0][1], check_exact=True)
+    assert np.array_equal(sol_a[0][0]["p_c_bar"], sol_b[0][0]["p_c_bar"], equal_nan=True)

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from ..batch import INPUT_COLUMNS, InputColumns, floats, matrix, numeric, simulate_batch, simulate_many, solved_mask
-from ..calibration import (TARGETS, CalibrationError, CalibrationResult, CalibrationSpec,
+from ..calibration import (CalibrationError, CalibrationResult, CalibrationSpec,
                            apply_state, calibrate, evaporator_share)
 from ..measured import derived
 from ..optimize import OptimizationError, groups, representative
@@ -234,6 +234,20 @@ class WindowTask:
     tracker: SurrogateTracker | None = None     # the qualified surrogate as of pass 1 (optimizer: auto)
     cost_turn: int = 0                          # the window's turn of the cost levels (cost_levels_for)
 
+    def obs_col(self, name: str) -> np.ndarray:
+        """``self.obs[name].to_numpy()``, read once: pass 1, pass 2 and the window's samples read
+        the same observation columns (~30 us a read). Not pickled (``__getstate__``)."""
+        got = self.__dict__.setdefault("_obs_cols", {})
+        a = got.get(name)
+        if a is None:
+            a = got[name] = self.obs[name].to_numpy()
+        return a
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d.pop("_obs_cols", None)
+        return d
+
 
 @dataclass
 class WindowPartial:
@@ -295,7 +309,7 @@ def scale_condenser(params: PlantParams, k: float) -> PlantParams:
 
 def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
                      points: int = 8, tol_bar: float = 0.002,
-                     solution: list | None = None) -> tuple[float, float]:
+                     solution: list | None = None, X: np.ndarray | None = None) -> tuple[float, float]:
     """The factor k on the condenser unit's conductance that makes the model's mean condensing
     pressure equal the measured one over the window (evaluated on ``points`` representative
     operating points at the actual set points), and the model's p_c error before it [bar].
@@ -310,8 +324,9 @@ def condenser_factor(der: pd.DataFrame, params: PlantParams, k0: float = 1.0,
     solved k where the model cannot solve every point; (NaN, err) when it does not converge. The
     answer depends on the start ``k0`` only within ``tol_bar`` (the chain starts every window at 1,
     so windows are independent of each other). ``solution``: a list that gets (VResult, rows) of
-    the representative points at the factor returned (the chain's later runs start from it)."""
-    X = matrix(der)
+    the representative points at the factor returned (the chain's later runs start from it).
+    ``X``: ``matrix(der)`` when the caller has it."""
+    X = matrix(der) if X is None else X
     parts = groups(der, points, X=X)
     rows, w = representative(der, points, parts, X=X)
     meas = der["p_c_bar"].to_numpy(dtype=float)
@@ -473,7 +488,7 @@ class AnalysisChain:
             task.obs = obs
             cov = []
             for st in STAGES:
-                pi, nn = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+                pi, nn = task.obs_col(f"pi_{st}"), task.obs_col(f"n_{st}")
                 ok = np.isfinite(pi) & np.isfinite(nn)
                 d = learner.coverage_distance(st, pi[ok], nn[ok]) if ok.any() else np.array([np.inf])
                 cov.append(float(np.mean(d <= 1.0)))
@@ -527,9 +542,10 @@ class AnalysisChain:
     def _calibrate(self, res: WindowResult, der: pd.DataFrame, base: PlantParams,
                    previous: dict | None) -> CalibrationResult | None:
         """The window's fouling calibration; None (and ``res.status`` failed) when it fails."""
-        cal = der[list(INPUT_COLUMNS) + sorted({m for m, _ in TARGETS.values()} & set(der.columns))]
+        # (``der`` itself: the calibration reads the inputs and its goals' columns alone, as it
+        # would from a copy of these columns; the copy cost 0.4 ms a window)
         try:
-            fc = calibrate(cal, base, self.spec, previous=previous,
+            fc = calibrate(der, base, self.spec, previous=previous,
                            window=(res.window_start, res.window_end))
         except (CalibrationError, ValueError, ArithmeticError) as exc:
             res.status = f"failed: fouling calibration: {exc}"
@@ -570,10 +586,14 @@ class AnalysisChain:
         adaptive = fc.apply(base)
         # the condenser unit's conductance to this window's measured condensing pressure
         seed = None         # solutions of the window's representative points: later runs start there
+        # the window's inputs, read once: the condenser factor's and the cost runs' representative
+        # points and the model figures read the same six columns of ``der`` (each read ~30 us)
+        der_in = InputColumns.of(der)
+        X_in = matrix(der_in)
         if self.s.condenser_correction:
             sol = []
             k, err = condenser_factor(der, adaptive, 1.0, self.s.advice.representative_points,
-                                      solution=sol)
+                                      solution=sol, X=X_in)
             seed = sol[0] if sol and math.isfinite(k) else None
             res.CF_cond_window = k
             res.p_c_error_bar = err
@@ -584,11 +604,11 @@ class AnalysisChain:
         res.detail["calibration"] = fc.to_dict()
         res.detail["adaptive_params"] = adaptive
         self._fouling_figures(res, fc, fixed, adaptive, der)
-        self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive, seed)
+        self._model_figures(res, der, base.replace(R_th_f=0.0, CF_dp_f=1.0), adaptive, seed, der_in)
         # ---- compressor residuals and drift at this window's operating point
         if learner is not None and obs is not None:
             for st in STAGES:
-                pi, nn = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+                pi, nn = task.obs_col(f"pi_{st}"), task.obs_col(f"n_{st}")
                 e = obs[f"eta_is_{st}"].to_numpy()
                 ok = np.isfinite(pi) & np.isfinite(nn) & np.isfinite(e)
                 if ok.sum() >= 5:
@@ -610,7 +630,7 @@ class AnalysisChain:
         if self.s.optimize:
             measured = None
             if obs is not None:
-                measured = {f"{q}_{st}": obs[f"{q}_{st}"].to_numpy(dtype=float)
+                measured = {f"{q}_{st}": np.asarray(task.obs_col(f"{q}_{st}"), dtype=float)
                             for st in STAGES for q in ("pi", "n")}
             # the surrogate fitted from earlier windows' optima, once it qualifies (issue #8 item 7)
             checked = check_rows(adv_in, self.s.advice)
@@ -645,7 +665,8 @@ class AnalysisChain:
                 res.status = f"failed: set-point optimization: {exc}"
         # ---- the cost of fouling's model runs (issue 10): every level pass 3 may need
         if self.s.cip.enabled:
-            out.cost_runs = self._cost_runs(res, adv_in, adaptive, out.seed, task.cost_turn)
+            out.cost_runs = self._cost_runs(res, adv_in, adaptive, out.seed, task.cost_turn,
+                                            X_in if adv_in is der else None)
 
     def finish(self, partial: WindowPartial, state: ChainState) -> WindowResult:
         """Pass 3 (in window order): what depends on the windows before — the fouling forecast,
@@ -680,7 +701,7 @@ class AnalysisChain:
 
     # ---- issue 10 ------------------------------------------------------------------------------
     def _cost_runs(self, res: WindowResult, cost_in: pd.DataFrame, adaptive: PlantParams,
-                   seed: tuple | None, turn: int) -> dict:
+                   seed: tuple | None, turn: int, X: np.ndarray | None = None) -> dict:
         """Pass 2 of the cost of fouling: the adaptive model at R_th,f 0, the window's level and the
         window's turn of the cost levels (``cip.cost_levels_per_window`` of
         ``cip.cost_levels_K_per_kW``, ``cost_levels_for``) on ``cip.cost_points`` representative
@@ -690,12 +711,12 @@ class AnalysisChain:
         together. {"levels": [K/kW], "frames": [per level the runs' columns as arrays, status and
         reason (``simulate_many``'s ``as_columns``)], "rows", "w", "seconds",
         "cpu_seconds"} (the times: the gateway's, one window at a time; in a replay's lockstep they
-        include the other windows' turns)."""
+        include the other windows' turns). ``X``: ``matrix(cost_in)`` when the caller has it."""
         t0, c0 = time.perf_counter(), time.thread_time()
         c = self.s.cip
         R = res.R_th_f_K_per_kW
         levels = sorted({0.0, *cost_levels_for(c, turn), *((R,) if math.isfinite(R) and R >= 0 else ())})
-        rows, w = representative(cost_in, c.cost_points)
+        rows, w = representative(cost_in, c.cost_points, X=X)
         k = len(rows)
         sd, seed_rows = seed if seed is not None else (None, None)
         # the rows once per level (as input columns: the numbers their concatenated frame gives)
@@ -776,7 +797,9 @@ class AnalysisChain:
         res.calibration_warnings = "; ".join(fc.warnings)
 
     def _model_figures(self, res: WindowResult, der: pd.DataFrame, fixed: PlantParams,
-                       adaptive: PlantParams, seed: tuple | None = None) -> None:
+                       adaptive: PlantParams, seed: tuple | None = None,
+                       inputs: InputColumns | None = None) -> None:
+        """The window's model figures (``inputs``: ``InputColumns.of(der)`` when the caller has it)."""
         cols = ("Q_sink_kW", "W_total_kW", "COP", "p_e_bar")
         n = len(der)
         keep = np.unique(np.linspace(0, n - 1, min(int(self.s.figure_rows), n)).round().astype(int))
@@ -784,9 +807,9 @@ class AnalysisChain:
         # cycle): both in one call, the fixed rows per-row R_th,f 0 (the rows as input columns and
         # the results as arrays: the numbers DataFrames of them give, without building them)
         m = len(keep)
+        inputs = InputColumns.of(der) if inputs is None else inputs
         both_in = InputColumns({c: np.concatenate([a, a]) for c, a in
-                                ((c, der[c].to_numpy(dtype=float)[keep]) for c in INPUT_COLUMNS
-                                 if c in der.columns)})
+                                ((c, a[keep]) for c, a in inputs.cols.items())})
         sim = simulate_many(both_in, adaptive, columns=cols,
                             R_th_f=np.r_[np.full(m, fixed.R_th_f), np.full(m, adaptive.R_th_f)],
                             seed=seed[0] if seed else None, seed_rows=seed[1] if seed else None,
@@ -869,7 +892,8 @@ def _window_samples(task: WindowTask, res: WindowResult) -> dict:
     if learner is not None:
         obs = task.obs if task.obs is not None else observe(data, task.fixed, learner.s)
         for st in STAGES:
-            pi, n = obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()
+            pi, n = ((task.obs_col(f"pi_{st}"), task.obs_col(f"n_{st}")) if task.obs is not None
+                     else (obs[f"pi_{st}"].to_numpy(), obs[f"n_{st}"].to_numpy()))
             ok = np.isfinite(pi) & np.isfinite(n)
             v = np.full(len(obs), np.nan)
             if ok.any():

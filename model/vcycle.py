@@ -334,6 +334,14 @@ def merge_key(req: dict):
     return req["ls_mode"], shared, comps
 
 
+# the last merged calls' stacked compressors, newest first: [(the call's parameter pairs,
+# {(id(comp_LS), id(comp_HS)): member}, Stacked LS, Stacked HS)] (the compressors are frozen
+# dataclasses: the same objects, the same stacks); a few, as a round's calls of different
+# ``merge_key`` alternate
+_STACKED: list = []
+STACKED_KEPT = 4
+
+
 def solve_merged(reqs: list[dict]) -> list[VResult]:
     """Several ``solve_many`` calls (their keyword arguments, validated; one ``merge_key``) in one:
     the rows of all, each with its call's parameters (its own compressors through
@@ -352,15 +360,25 @@ def solve_merged(reqs: list[dict]) -> list[VResult]:
     starts = ends - np.asarray(sizes)
     n = int(ends[-1]) if len(ends) else 0
     cols = {c: np.concatenate([x[c] for x in cols_l]) for c in cols_l[0]}
-    pairs, member, ids = [], [], {}
+    pairs, keys, ids = [], [], {}
     for r in reqs:                             # one stacked member per distinct compressor pair
         key = (id(r["params"].comp_LS), id(r["params"].comp_HS))
         if key not in ids:
             ids[key] = len(pairs)
             pairs.append(r["params"])
-        member.append(ids[key])
-    group = np.repeat(np.asarray(member, dtype=np.intp), sizes)
-    comps = (Stacked([p.comp_LS for p in pairs]), Stacked([p.comp_HS for p in pairs]))
+        keys.append(key)
+    kept = list(_STACKED)
+    last = next((e for e in kept if all(k in e[1] for k in ids)), None)
+    if last is not None:
+        # every pair a member of a recent call's stacks (a lockstep's later rounds ask for fewer
+        # of its windows): those stacks, each row its pair's member there. A row reads its own
+        # member's curves and grid only, so a larger stack gives it the same numbers
+        ids, comps = last[1], (last[2], last[3])
+    else:
+        comps = (Stacked([p.comp_LS for p in pairs]), Stacked([p.comp_HS for p in pairs]))
+        # (pairs: the compressors stay alive with their ids)
+        _STACKED[:] = [(pairs, ids, *comps)] + kept[:STACKED_KEPT - 1]
+    group = np.repeat(np.asarray([ids[k] for k in keys], dtype=np.intp), sizes)
 
     def per_row(f):
         # each call's value (a number, or one per row) over its rows; numbers alone repeated at once

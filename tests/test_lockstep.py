@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 import threading
 
@@ -146,6 +147,46 @@ def test_solve_merged_is_the_same_as_through_threads(plant, learned, draws):
     b = lockstep.run([(lambda kw=kw: solve_many(**kw)) for kw in kws])
     for x, y in zip(a, b):
         pd.testing.assert_frame_equal(x.frame(), y.frame())
+
+
+@pytest.mark.parametrize("kernels", [True, False])
+def test_a_merged_call_of_pairs_stacked_already_reuses_the_stacks_to_the_bit(plant, learned, draws,
+                                                                            monkeypatch, kernels):
+    """A lockstep's later rounds ask for fewer of its windows: a merged call whose compressor pairs
+    are all members of a recent call's stacks takes those stacks (each row its pair's member
+    there) and answers to the bit as stacks of its own pairs would; other pairs get stacks of
+    their own, the last few kept. Compiled kernels or numpy alike."""
+    import model.vcycle as V
+    from model.analysis import speedkernel
+    if kernels:
+        assert speedkernel.enable()
+    else:
+        for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE", "_SC_POST"):
+            monkeypatch.setattr(speedkernel, k, None)
+    monkeypatch.setattr(V, "_STACKED", [])
+    kws = _requests(plant, learned, draws)[:3]
+    full = [dict(kw, force_scalar=None, guess=None, gi=None, p_m_sp=kw.get("p_m_sp"),
+                 R_th_f=None if kw.get("R_th_f") is None else np.asarray(kw["R_th_f"], dtype=float),
+                 cond_factor=None if kw.get("cond_factor") is None else np.full(len(kw["rows"]), kw["cond_factor"]),
+                 deltas={}) for kw in kws]
+    solve_merged(full)
+    stacks = V._STACKED[0]
+    assert len(stacks[1]) == 3 and len(stacks[2].comps) == 3
+    sub = [full[2], full[1]]                  # two of its pairs, in another order
+    got = solve_merged(sub)
+    assert V._STACKED == [stacks]             # reused, nothing new kept
+    V._STACKED.clear()
+    fresh = solve_merged(sub)
+    assert len(V._STACKED) == 1 and len(V._STACKED[0][2].comps) == 2
+    for x, y in zip(got, fresh):
+        pd.testing.assert_frame_equal(x.frame(), y.frame(), check_exact=True)
+    # a pair not stacked yet: stacks of its own, the older kept behind them (at most STACKED_KEPT)
+    for i in range(V.STACKED_KEPT + 1):
+        comp = dataclasses.replace(plant.comp_LS, eta_is=tuple(c * (1.0 + 1e-3 * (i + 1))
+                                                               for c in plant.comp_LS.eta_is))
+        solve_merged([dict(full[0], params=plant.replace(comp_LS=comp)), full[0]])
+        assert V._STACKED[0][2].comps[0] is comp
+    assert len(V._STACKED) == V.STACKED_KEPT
 
 
 def test_lockstep_results_in_order_exceptions_in_place_and_bounded(plant):

@@ -221,13 +221,15 @@ class Flowsheet:
         p_m, h_f_m = self.tab.sat(T_m)[:2]
         return speed_v(self.comp("LS", idx), Q / (h1 - h_f_m), rho1, p_m / p_e, self.n_LS[idx])[0]
 
-    def ls_speed(self, idx, T_m, sat_m=None):
+    def ls_speed(self, idx, T_m, sat_m=None, comp=None):
         """LS speed ratio [-], eta_vol, m_LS [kg/s] and pressure ratio for the rows idx: the LS side
-        alone, which T_source,out and T_m [K] fix (``sat_m``: (p_m, h_f,m) when known)."""
+        alone, which T_source,out and T_m [K] fix (``sat_m``: (p_m, h_f,m) when known; ``comp``:
+        ``self.comp("LS", idx)`` when the caller has it)."""
         p_m, h_f_m = (sat_m[0], sat_m[1]) if sat_m is not None else self.tab.sat(T_m)[:2]
         m_LS = self.Q_s[idx] / (self.h1[idx] - h_f_m)
         pi = p_m / self.p_e[idx]
-        n_LS, ev = speed_v(self.comp("LS", idx), m_LS, self.rho1[idx], pi, self.n_LS[idx])
+        n_LS, ev = speed_v(self.comp("LS", idx) if comp is None else comp, m_LS, self.rho1[idx], pi,
+                           self.n_LS[idx])
         return n_LS, ev, m_LS, pi
 
     # ---- intermediate side: fixed by T_m ----------------------------------------------------------
@@ -237,8 +239,9 @@ class Flowsheet:
         inside = (T_m >= VAP_T_MIN) & (T_m <= VAP_T_MAX)
         Tq = np.where(inside, T_m, VAP_T_MIN)
         p_m, h_f_m, h_g_m, s_g_m, rho_g_m = tab.sat_raw(Tq)
-        n_LS, ev_LS, m_LS, pi = self.ls_speed(idx, Tq, (p_m, h_f_m))
-        eta = self.comp("LS", idx).eta_is_v(pi, n_LS)
+        ls = self.comp("LS", idx)           # (one for both: a stacked view or a per-row copy)
+        n_LS, ev_LS, m_LS, pi = self.ls_speed(idx, Tq, (p_m, h_f_m), ls)
+        eta = ls.eta_is_v(pi, n_LS)
         ds = self.s1[idx] - s_g_m
         h2s = tab.isen_raw(Tq, ds)
         h1 = self.h1[idx]

@@ -155,7 +155,7 @@ def test_a_merged_call_of_pairs_stacked_already_reuses_the_stacks_to_the_bit(pla
     """A lockstep's later rounds ask for fewer of its windows: a merged call whose compressor pairs
     are all members of a recent call's stacks takes those stacks (each row its pair's member
     there) and answers to the bit as stacks of its own pairs would; other pairs get stacks of
-    their own, the last few kept. Compiled kernels or numpy alike."""
+    their own, the last ``STACKED_KEPT`` kept. Compiled kernels or numpy alike."""
     import model.vcycle as V
     from model.analysis import speedkernel
     if kernels:
@@ -180,7 +180,7 @@ def test_a_merged_call_of_pairs_stacked_already_reuses_the_stacks_to_the_bit(pla
     assert len(V._STACKED) == 1 and len(V._STACKED[0][2].comps) == 2
     for x, y in zip(got, fresh):
         pd.testing.assert_frame_equal(x.frame(), y.frame(), check_exact=True)
-    # a pair not stacked yet: stacks of its own, the older kept behind them (at most STACKED_KEPT)
+    # a pair not stacked yet: stacks of its own, the newest first, at most STACKED_KEPT kept
     for i in range(V.STACKED_KEPT + 1):
         comp = dataclasses.replace(plant.comp_LS, eta_is=tuple(c * (1.0 + 1e-3 * (i + 1))
                                                                for c in plant.comp_LS.eta_is))

@@ -176,6 +176,10 @@ class CycleTables:
         """(p [Pa], h_f, h_g [J/kg], s_g [J/kg/K], rho_g [kg/m^3]) at saturation temperatures T [K]
         (NaN outside the table)."""
         T = np.asarray(T, dtype=float)
+        if _kernels._KERNEL is not None and T.ndim == 1:
+            v = _kernels.sat_full(self._sat_c, T, self._sat_x0, 1.0 / SAT_DT, self._sat_n - 2, SAT_T_MIN,
+                                  SAT_T_MAX)
+            return np.exp(v[0]), v[1], v[2], v[3], np.exp(v[4])
         v = self._sat_eval(np.where(self.sat_ok(T), T, SAT_T_MIN), slice(None))
         v = np.where(self.sat_ok(T)[:, None], v, np.nan)
         return np.exp(v[:, 0]), v[:, 1], v[:, 2], v[:, 3], np.exp(v[:, 4])
@@ -252,6 +256,11 @@ class CycleTables:
         (NaN outside the table)."""
         T_sat, theta = np.broadcast_arrays(np.asarray(T_sat, dtype=float), np.asarray(theta, dtype=float))
         ok = self.vap_ok(T_sat, theta)
+        if _kernels._KERNEL is not None and T_sat.ndim == 1:
+            v = _kernels.vapour(self._vap, T_sat, theta, u_of_theta(np.where(ok, theta, 0.0)), self._vap_x0,
+                                1.0 / VAP_DT, self._vap_nx - 2, self._vap_nu - 1, self._vap_u0,
+                                1.0 / self._vap_du, self._vap_nu - 2, VAP_T_MIN, VAP_T_MAX, THETA_MAX)
+            return v[0], v[1], np.exp(v[2])
         base, tx = self._vap_row(np.where(ok, T_sat, VAP_T_MIN))
         _, t, a = self._vap_cubics(base, tx, u_of_theta(np.where(ok, theta, 0.0)))
         v = np.where(ok[:, None], self._cubic(a, t), np.nan)

@@ -7,7 +7,8 @@ used, so there is nothing to compare and these tests are skipped.
   curve draw as six scalars and as six per-row arrays), rows inside and outside the grid, beyond the
   speed range, NaN inputs: equal to the numpy search bit for bit;
 - stacked compressors (``model.analysis.stacked``) likewise, rows of four members in one call;
-- the saturation table, the isentropic / superheat lookups and the subcooler's Newton step: the
+- the saturation table (with and without its range check), the vapour table, the isentropic /
+  superheat lookups and the subcooler's Newton step: the
   lookups on their ranges with NaN and out-of-range coordinates, the solver on the operating grid x
   set points, equal to numpy to the bit;
 - a replay with the kernel gives the same windows as without it.
@@ -207,6 +208,40 @@ def test_saturation_and_derived_lookups_equal_numpy_to_the_bit(kernel):
         assert not np.isfinite(got[[0, 3, 4]]).any() and np.isfinite(got[7:]).all()
 
 
+def test_checked_saturation_and_vapour_tables_equal_numpy_to_the_bit(kernel, monkeypatch):
+    """The compiled saturation table with its range check (``CycleTables.sat``) and the vapour
+    table (``CycleTables.vapour``, the evaporator's suction state): over and beyond their ranges,
+    on nodes and range ends, NaN and infinite coordinates -> NaN rows where numpy has them, every
+    other bit equal; and both ran in the kernel."""
+    from model.cycletables import SAT_T_MAX, SAT_T_MIN, THETA_MAX, VAP_T_MAX, VAP_T_MIN, get_cycle_tables
+    tab = get_cycle_tables()
+    rng = np.random.default_rng(10)
+    k = 8000
+    calls = []
+    for name in ("sat_full", "vapour"):
+        f = getattr(speedkernel, name)
+        monkeypatch.setattr(speedkernel, name, lambda *a, f=f, name=name: calls.append(name) or f(*a))
+    T = rng.uniform(SAT_T_MIN - 5.0, SAT_T_MAX + 5.0, k)
+    T[:6] = [np.nan, np.inf, -np.inf, SAT_T_MIN, SAT_T_MAX, 1e300]
+    T[6:20] = np.round(T[6:20], 1)                   # on the table's nodes
+    with np.errstate(all="ignore"):
+        ref, got = _both(lambda: tab.sat(T))
+    _equal(ref, got)
+    outside = ~((T >= SAT_T_MIN) & (T <= SAT_T_MAX))
+    assert np.array_equal(np.isnan(got[0]), outside) and outside.sum() > 100 and np.isfinite(got[1][3:5]).all()
+    Tv = rng.uniform(VAP_T_MIN - 5.0, VAP_T_MAX + 5.0, k)
+    th = rng.uniform(-5.0, 60.0, k)
+    th[:300] = rng.uniform(0.0, THETA_MAX, 300)      # the whole superheat range
+    th[300:305] = [np.nan, np.inf, 0.0, THETA_MAX, -0.0]
+    Tv[305:310] = [np.nan, VAP_T_MIN, VAP_T_MAX, np.inf, 0.0]
+    with np.errstate(all="ignore"):
+        ref, got = _both(lambda: tab.vapour(Tv, th))
+    _equal(ref, got)
+    ok = tab.vap_ok(Tv, th)
+    assert np.array_equal(np.isfinite(got[2]), ok) and (~ok).sum() > 100 and ok[302:304].all()
+    assert calls == ["sat_full", "vapour"]
+
+
 def test_flowsheet_with_the_kernels_solves_to_the_bit(plant, kernel, monkeypatch):
     """``solve_many`` on the operating grid x set points (rows that solve, rows beyond the LS speed
     range, cold and warm subcooler starts): the same frame with the compiled saturation, lookups
@@ -230,7 +265,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
     kernel off (numpy's numbers), and no second attempt in the process."""
     import numba
     keep = {k: getattr(speedkernel, k) for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE",
-                                                 "_SC_POST", "_TRIED")}
+                                                 "_SC_POST", "_SATF", "_VAP", "_TRIED")}
 
     def broken(*a, **k):
         raise TypeError("no LLVM here")
@@ -243,6 +278,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
         with pytest.warns(RuntimeWarning, match=r"did not compile \(TypeError: no LLVM here\); replays run on numpy"):
             assert speedkernel.enable() is False
         assert not speedkernel.active() and speedkernel._SC_PRE is None and speedkernel._SAT is None
+        assert speedkernel._SATF is None and speedkernel._VAP is None
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("error")

@@ -8,8 +8,11 @@
 - the stacked compressors' curves (``stacked._View._curve``: eta_is and eta_vol of rows that each
   name their window's compressor, on its local grid where that covers);
 - the liquid table (``CycleTables.liq_raw``, the subcooler's inner loop);
-- the saturation table (``CycleTables.sat_raw``) and the isentropic / superheat-from-enthalpy
-  lookups (``CycleTables._derived``) around their ``exp`` and ``log1p``, which stay numpy's;
+- the saturation table (``CycleTables.sat_raw``; ``CycleTables.sat`` with its range check) and the
+  isentropic / superheat-from-enthalpy lookups (``CycleTables._derived``) around their ``exp`` and
+  ``log1p``, which stay numpy's;
+- the vapour table (``CycleTables.vapour``: the evaporator's suction state at every source-side
+  change) before its ``exp``: one cell's cubics per row instead of numpy's (rows, 4, 4, 3) gather;
 - the subcooler's Newton step (``Flowsheet._subcooler``) in two halves around numpy's ``exp`` of
   the effectiveness (``subcooler``: the same iteration, the same exits).
 
@@ -36,6 +39,7 @@ _CURVE = None           # the compiled stacked curve (set with _KERNEL)
 _LIQ = None             # the compiled liquid table (set with _KERNEL)
 _SAT = _DER = None      # the compiled saturation table and isentropic / T-from-h lookups
 _SC_PRE = _SC_POST = None   # the subcooler's Newton step, before and after its exp
+_SATF = _VAP = None     # the saturation table with its range check and the vapour table
 _TRIED = False
 
 
@@ -253,6 +257,49 @@ def _sat_rows(C, T, x0, inv_dt, out):
             out[q, r] = ((C[k, 0, q] * t + C[k, 1, q]) * t + C[k, 2, q]) * t + C[k, 3, q]
 
 
+def _sat_full_rows(C, T, x0, inv_dt, nm2, t_lo, t_hi, out):
+    """``CycleTables.sat`` without its two ``exp``: the spline columns (ln p, h_f, h_g, s_g,
+    ln rho_g) at T, NaN where T lies outside [t_lo, t_hi] (those rows are evaluated at t_lo there
+    and then replaced: the same NaN), the cell index clamped as ``_sat_eval`` clamps it."""
+    for r in range(T.shape[0]):
+        Tr = T[r]
+        if not (Tr >= t_lo and Tr <= t_hi):
+            for q in range(5):
+                out[q, r] = np.nan
+            continue
+        t = (Tr - x0) * inv_dt
+        i = _idx(t, nm2)
+        t = t - i
+        for q in range(5):
+            out[q, r] = ((C[i, 0, q] * t + C[i, 1, q]) * t + C[i, 2, q]) * t + C[i, 3, q]
+
+
+def _vap_rows(V, T, theta, u, x0, inv_dx, nxm2, nu1, u0, inv_du, num2, t_lo, t_hi, th_max, out):
+    """``CycleTables.vapour`` without its ``exp`` and ``u_of_theta`` (u, numpy's log1p, is given):
+    (h, s, ln rho) at (T_sat, theta), NaN outside the table (``vap_ok``); per row the cell's cubics
+    in the T_sat coordinate (``_vap_cubics``) and then in u (``_cubic``), in numpy's order."""
+    for r in range(T.shape[0]):
+        Tr = T[r]
+        th = theta[r]
+        if not (Tr >= t_lo and Tr <= t_hi and th >= 0.0 and th <= th_max):
+            for q in range(3):
+                out[q, r] = np.nan
+            continue
+        x = (Tr - x0) * inv_dx
+        i = _idx(x, nxm2)
+        tx = x - i
+        y = (u[r] - u0) * inv_du
+        j = _idx(y, num2)
+        k = i * nu1 + j
+        t = y - j
+        for q in range(3):
+            a0 = ((V[k, 0, 0, q] * tx + V[k, 1, 0, q]) * tx + V[k, 2, 0, q]) * tx + V[k, 3, 0, q]
+            a1 = ((V[k, 0, 1, q] * tx + V[k, 1, 1, q]) * tx + V[k, 2, 1, q]) * tx + V[k, 3, 1, q]
+            a2 = ((V[k, 0, 2, q] * tx + V[k, 1, 2, q]) * tx + V[k, 2, 2, q]) * tx + V[k, 3, 2, q]
+            a3 = ((V[k, 0, 3, q] * tx + V[k, 1, 3, q]) * tx + V[k, 2, 3, q]) * tx + V[k, 3, 3, q]
+            out[q, r] = ((a0 * t + a1) * t + a2) * t + a3
+
+
 def _der_rows(C, T, lw, x0, inv_dx, nxm2, w0, inv_alpha, inv_dw, nwm2, out):
     """``CycleTables._derived`` after its ``log1p`` (lw = log1p(dv * expm1(alpha)/grid)): the
     bicubic at the rows' (T_sat, w)."""
@@ -361,7 +408,7 @@ def _sc_post(x, C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, finish)
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -382,9 +429,11 @@ def enable() -> bool:
         _DER = jit(type(_der_rows)(_der_rows.__code__, glb, _der_rows.__name__))
         _SC_PRE = jit(type(_sc_pre)(_sc_pre.__code__, glb, _sc_pre.__name__))
         _SC_POST = jit(_sc_post)
+        _SATF = jit(type(_sat_full_rows)(_sat_full_rows.__code__, glb, _sat_full_rows.__name__))
+        _VAP = jit(type(_vap_rows)(_vap_rows.__code__, glb, _vap_rows.__name__))
         _probe()
     except Exception as exc:     # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = None
+        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = None
         # the same numbers either way, but a replay several times slower: say so once
         warnings.warn(f"numba {getattr(numba, '__version__', '?')} is installed but hp-edge's compiled kernels "
                       f"did not compile ({type(exc).__name__}: {exc}); replays run on numpy: the same "
@@ -410,6 +459,8 @@ def _probe() -> None:
     liq(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), z1, 0.0, 2.0, -2.0)
     sat(np.zeros((2, 4, 5)), z1, 0.0, 1.0)
     derived(np.zeros((4, 16)), z1, z1, 0.0, 1.0, 0, 0.0, 1.0, 1.0, 0)
+    sat_full(np.zeros((2, 4, 5)), z1, 0.0, 1.0, 0, 0.0, 1.0)
+    vapour(np.zeros((4, 4, 4, 3)), z1, z1, z1, 0.0, 1.0, 0, 2, 0.0, 1.0, 0, 0.0, 1.0, 1.0)
     subcooler(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), 0.0, 2.0, -2.0, z1 + 0.25,
               z1 + 1.0, z1 + 2.0, z1, z1 + 1.0, z1 + 1.0, z1 + 2.0, z1 + 10.0, 30, 1e-6)
 
@@ -486,6 +537,25 @@ def sat(C, T, x0: float, inv_dt: float) -> np.ndarray:
     T = np.ascontiguousarray(T, dtype=float)
     out = np.empty((5, T.shape[0]))
     _SAT(C, T, float(x0), float(inv_dt), out)
+    return out
+
+
+def sat_full(C, T, x0: float, inv_dt: float, nm2: int, t_lo: float, t_hi: float) -> np.ndarray:
+    """``CycleTables.sat``'s spline columns (5, rows) at T, NaN outside [t_lo, t_hi], before its
+    two ``exp``."""
+    T = np.ascontiguousarray(T, dtype=float)
+    out = np.empty((5, T.shape[0]))
+    _SATF(C, T, float(x0), float(inv_dt), int(nm2), float(t_lo), float(t_hi), out)
+    return out
+
+
+def vapour(V, T, theta, u, x0, inv_dx, nxm2, nu1, u0, inv_du, num2, t_lo, t_hi, th_max) -> np.ndarray:
+    """``CycleTables.vapour``'s (h, s, ln rho) (3, rows), NaN outside the table, before its ``exp``."""
+    T = np.ascontiguousarray(T, dtype=float)
+    out = np.empty((3, T.shape[0]))
+    _VAP(V, T, np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(u, dtype=float), float(x0),
+         float(inv_dx), int(nxm2), int(nu1), float(u0), float(inv_du), int(num2), float(t_lo), float(t_hi),
+         float(th_max), out)
     return out
 
 

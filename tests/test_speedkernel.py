@@ -242,6 +242,30 @@ def test_checked_saturation_and_vapour_tables_equal_numpy_to_the_bit(kernel, mon
     assert calls == ["sat_full", "vapour"]
 
 
+def test_coverage_distance_equals_numpy_to_the_bit(plant, kernel, monkeypatch):
+    """The learner's distance to its covered bins (``CompressorLearner.coverage_distance``) with the
+    compiled nearest rectangle: points inside bins, between them, far out, on bin edges, NaN and
+    infinite coordinates, a commissioning reference: numpy's numbers to the bit; and the kernel ran."""
+    learner = _draw_learner(plant)[0]
+    rng = np.random.default_rng(11)
+    k = 4000
+    calls = []
+    f = speedkernel.rect_min
+    monkeypatch.setattr(speedkernel, "rect_min", lambda *a: calls.append(len(a[0])) or f(*a))
+    for st, pi0, n0 in (("LS", 2.4, 1.05), ("HS", 1.9, 1.0)):
+        pi, n = rng.normal(pi0, 0.8, k), rng.normal(n0, 0.3, k)
+        pi[:4], n[4:8] = [np.nan, np.inf, -np.inf, pi0], [np.nan, np.inf, n0, -1.0]
+        c = learner.coverage[st].centers(learner.s.min_bin_weight)
+        pi[8:12], n[8:12] = c[:4, 0] + 0.5 * learner.coverage[st].bin_pi, c[:4, 1]   # on a bin's edge
+        ref, got = _both(lambda: learner.coverage_distance(st, pi, n))
+        np.testing.assert_array_equal(ref, got)
+        assert (got == 0).sum() > k // 10 and (got > 1).sum() > k // 10 and np.isinf(got[:8]).sum() >= 5
+        ref_doc = learner.coverage[st].to_dict()
+        ref, got = _both(lambda: learner.coverage_distance(st, pi[:50], n[:50], reference=ref_doc))
+        np.testing.assert_array_equal(ref, got)
+    assert calls == [k, 50, k, 50]
+
+
 def test_flowsheet_with_the_kernels_solves_to_the_bit(plant, kernel, monkeypatch):
     """``solve_many`` on the operating grid x set points (rows that solve, rows beyond the LS speed
     range, cold and warm subcooler starts): the same frame with the compiled saturation, lookups
@@ -265,7 +289,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
     kernel off (numpy's numbers), and no second attempt in the process."""
     import numba
     keep = {k: getattr(speedkernel, k) for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE",
-                                                 "_SC_POST", "_SATF", "_VAP", "_TRIED")}
+                                                 "_SC_POST", "_SATF", "_VAP", "_RECT", "_TRIED")}
 
     def broken(*a, **k):
         raise TypeError("no LLVM here")
@@ -278,7 +302,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
         with pytest.warns(RuntimeWarning, match=r"did not compile \(TypeError: no LLVM here\); replays run on numpy"):
             assert speedkernel.enable() is False
         assert not speedkernel.active() and speedkernel._SC_PRE is None and speedkernel._SAT is None
-        assert speedkernel._SATF is None and speedkernel._VAP is None
+        assert speedkernel._SATF is None and speedkernel._VAP is None and speedkernel._RECT is None
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("error")

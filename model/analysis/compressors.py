@@ -1393,7 +1393,10 @@ class CompressorLearner:
         half = 0.5 * np.array([cov.bin_pi, cov.bin_n])
         scale = np.array([self.s.margin_pi, self.s.margin_n])
         # per query and bin: the distance to the bin's rectangle, scaled by the margin
-        d = _rect_distance(q, c, half, scale).min(axis=1)
+        if speedkernel._KERNEL is not None:
+            d = speedkernel.rect_min(q, c, half, scale)
+        else:
+            d = _rect_distance(q, c, half, scale).min(axis=1)
         return np.where(np.isfinite(q).all(axis=1), d, np.inf)
 
     def eta_is(self, stage: str, pi, n) -> np.ndarray:

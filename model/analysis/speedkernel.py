@@ -13,6 +13,8 @@
   ``log1p``, which stay numpy's;
 - the vapour table (``CycleTables.vapour``: the evaporator's suction state at every source-side
   change) before its ``exp``: one cell's cubics per row instead of numpy's (rows, 4, 4, 3) gather;
+- the compressor learner's distance to its covered bins (``CompressorLearner.coverage_distance``:
+  the nearest rectangle per point, without the (points, bins) arrays);
 - the subcooler's Newton step (``Flowsheet._subcooler``) in two halves around numpy's ``exp`` of
   the effectiveness (``subcooler``: the same iteration, the same exits).
 
@@ -40,6 +42,7 @@ _LIQ = None             # the compiled liquid table (set with _KERNEL)
 _SAT = _DER = None      # the compiled saturation table and isentropic / T-from-h lookups
 _SC_PRE = _SC_POST = None   # the subcooler's Newton step, before and after its exp
 _SATF = _VAP = None     # the saturation table with its range check and the vapour table
+_RECT = None            # the learner's distance to its covered bins
 _TRIED = False
 
 
@@ -300,6 +303,25 @@ def _vap_rows(V, T, theta, u, x0, inv_dx, nxm2, nu1, u0, inv_du, num2, t_lo, t_h
             out[q, r] = ((a0 * t + a1) * t + a2) * t + a3
 
 
+def _rect_min_rows(q0, q1, c, half0, half1, s0, s1, out):
+    """``compressors._rect_distance(q, c, half, scale).min(axis=1)``: per point the distance to the
+    nearest rectangle (NaN when any is NaN, as numpy's min), without the (points, rectangles)
+    arrays."""
+    m = c.shape[0]
+    for r in range(q0.shape[0]):
+        best = np.inf
+        for j in range(m):
+            a = _nmax(abs(q0[r] - c[j, 0]) - half0, 0.0) / s0
+            b = _nmax(abs(q1[r] - c[j, 1]) - half1, 0.0) / s1
+            v = math.sqrt(a * a + b * b)
+            if v != v:
+                best = v
+                break
+            if v < best:
+                best = v
+        out[r] = best
+
+
 def _der_rows(C, T, lw, x0, inv_dx, nxm2, w0, inv_alpha, inv_dw, nwm2, out):
     """``CycleTables._derived`` after its ``log1p`` (lw = log1p(dv * expm1(alpha)/grid)): the
     bicubic at the rows' (T_sat, w)."""
@@ -408,7 +430,7 @@ def _sc_post(x, C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, finish)
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _RECT, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -431,9 +453,10 @@ def enable() -> bool:
         _SC_POST = jit(_sc_post)
         _SATF = jit(type(_sat_full_rows)(_sat_full_rows.__code__, glb, _sat_full_rows.__name__))
         _VAP = jit(type(_vap_rows)(_vap_rows.__code__, glb, _vap_rows.__name__))
+        _RECT = jit(type(_rect_min_rows)(_rect_min_rows.__code__, glb, _rect_min_rows.__name__))
         _probe()
     except Exception as exc:     # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = None
+        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = _RECT = None
         # the same numbers either way, but a replay several times slower: say so once
         warnings.warn(f"numba {getattr(numba, '__version__', '?')} is installed but hp-edge's compiled kernels "
                       f"did not compile ({type(exc).__name__}: {exc}); replays run on numpy: the same "
@@ -461,6 +484,7 @@ def _probe() -> None:
     derived(np.zeros((4, 16)), z1, z1, 0.0, 1.0, 0, 0.0, 1.0, 1.0, 0)
     sat_full(np.zeros((2, 4, 5)), z1, 0.0, 1.0, 0, 0.0, 1.0)
     vapour(np.zeros((4, 4, 4, 3)), z1, z1, z1, 0.0, 1.0, 0, 2, 0.0, 1.0, 0, 0.0, 1.0, 1.0)
+    rect_min(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(2), np.ones(2))
     subcooler(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), 0.0, 2.0, -2.0, z1 + 0.25,
               z1 + 1.0, z1 + 2.0, z1, z1 + 1.0, z1 + 1.0, z1 + 2.0, z1 + 10.0, 30, 1e-6)
 
@@ -556,6 +580,15 @@ def vapour(V, T, theta, u, x0, inv_dx, nxm2, nu1, u0, inv_du, num2, t_lo, t_hi, 
     _VAP(V, T, np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(u, dtype=float), float(x0),
          float(inv_dx), int(nxm2), int(nu1), float(u0), float(inv_du), int(num2), float(t_lo), float(t_hi),
          float(th_max), out)
+    return out
+
+
+def rect_min(q, c, half, scale) -> np.ndarray:
+    """``compressors._rect_distance(q, c, half, scale).min(axis=1)`` (q (k, 2), c (m, 2), m >= 1)."""
+    q = np.asarray(q, dtype=float)
+    out = np.empty(q.shape[0])
+    _RECT(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), np.ascontiguousarray(c, dtype=float),
+          float(half[0]), float(half[1]), float(scale[0]), float(scale[1]), out)
     return out
 
 

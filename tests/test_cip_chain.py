@@ -89,6 +89,32 @@ def test_forecast_state_survives_json_and_gives_the_same_next_window():
         ForecastState.from_dict({**doc, "R": doc["R"][:-1]})
 
 
+def test_the_priors_are_kept_until_a_cip_replaces_the_cycle_fits():
+    """``ForecastState.priors`` answers from the earlier cycles' fits; kept between windows (the same
+    objects), recomputed when a CIP hands on a new list of cycle fits, never from a stale list, and
+    not part of the persisted state."""
+    from model.analysis.forecast import fit_fouling, law_prior
+    rng = np.random.default_rng(5)
+
+    def ks_fit(tau, y_inf):
+        t = np.linspace(0.0, 40.0, 240)
+        y = y_inf * (1.0 - np.exp(-t / tau)) + 1e-3 + rng.normal(0.0, 0.01e-3, len(t))
+        f = fit_fouling(t, y, np.full(len(t), 0.01e-3))
+        assert f.law == "kern_seaton"
+        return f
+
+    f1, f2 = ks_fit(8.0, 2e-3), ks_fit(15.0, 3e-3)
+    fs = ForecastState()
+    assert fs.priors() == (None, None)
+    fs.cycle_fits = [{"R": f1.to_state(), "CF": None}]
+    a = fs.priors()
+    assert a[0] == law_prior([f1]) and a[1] is None and fs.priors()[0] is a[0]
+    fs.cycle_fits = fs.cycle_fits + [{"R": f2.to_state(), "CF": None}]     # as ForecastState.cip does
+    b = fs.priors()
+    assert b[0] == law_prior([f1, f2]) and b[0] != a[0] and b[0].n_cycles == 2
+    assert "_priors" not in fs.to_dict() and ForecastState.from_dict(fs.to_dict()).priors() == b
+
+
 def test_estimates_are_bounded_by_thinning_the_older_half():
     s = CipSettings(electricity_price_eur_per_MWh=100.0, max_estimates=100)
     fs = ForecastState()

@@ -470,6 +470,12 @@ class ForecastState:
                                 [x["start_s"] / SECONDS_PER_DAY for x in c]) if c else None
 
     def priors(self) -> tuple[LawPrior | None, LawPrior | None]:
+        """The earlier cycles' laws as priors (``law_prior``) for R_th,f and CF_dp,f. They change only
+        when a CIP replaces ``cycle_fits`` (a new list, never changed in place): the last answer is
+        kept with the list it came from (0.8 s of a plant-year's replay, every window's)."""
+        got = self.__dict__.get("_priors")
+        if got is not None and got[0] is self.cycle_fits:
+            return got[1]
         out = []
         for key in ("R", "CF"):
             fits = []
@@ -483,6 +489,7 @@ class ForecastState:
                 out.append(law_prior(fits))
             except ForecastError:
                 out.append(None)
+        self.__dict__["_priors"] = (self.cycle_fits, (out[0], out[1]))
         return out[0], out[1]
 
     def _after_window(self) -> None:

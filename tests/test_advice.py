@@ -291,6 +291,35 @@ def test_a_short_covered_stretch_at_the_hs_plateau_still_brackets_the_optimum():
     assert not too_short(t4, 16.0, s)
 
 
+def test_a_stretch_of_exactly_the_limit_is_judged_alike_whatever_its_last_bit():
+    """The trusted path's p_m steps are multiples of its set-point grid (0.5 bar), and so are
+    min_covered_bar and gap_max_bar (3 bar): a covered stretch of six steps came out 3.0 +- 1.5e-13
+    bar in a replay (the p_m are weighted means of solved rows), and before stop 51 the sign of that
+    rounding decided whether the window was confident — the note then said 'run over 14.22-17.22 bar(g)
+    only (less than 3 bar)'. Both limits now compare with GRID_TOL_BAR."""
+    from model.analysis.advice import GRID_TOL_BAR, AdviceSettings, stretch_from_path, too_short
+    s = AdviceSettings()
+    assert (s.min_covered_bar, s.gap_max_bar, s.path_step_bar) == (3.0, 3.0, 0.5)
+    lo = 14.217713
+    for err in (-1.5e-13, 0.0, 1.5e-13):
+        hi = lo + 3.0 + err
+        path = [(lo + 0.5 * k, 0.4, lo + 0.5 * k) for k in range(6)] + [(hi, 0.4, hi), (hi + 0.5, 1.6, hi + 0.5)]
+        t = stretch_from_path(path, s)
+        assert t.covered_hi - t.covered_lo == pytest.approx(3.0, abs=2e-13)
+        assert not too_short(t, lo + 1.0, s), err
+        # a hole of exactly gap_max_bar between two covered points is not wider than it
+        t_gap = stretch_from_path([(lo, 0.4, lo)] + [(lo + 0.5 * k, 1.6, lo + 0.5 * k) for k in range(1, 6)]
+                                  + [(hi, 0.4, hi)], s)
+        assert t_gap.gaps == (), err
+    # half a step shorter is short, and half a step wider is a gap, as before
+    short = stretch_from_path([(lo + 0.5 * k, 0.4, lo + 0.5 * k) for k in range(6)], s)
+    assert short.covered_hi - short.covered_lo == pytest.approx(2.5) and too_short(short, lo + 1.0, s)
+    wide = stretch_from_path([(lo, 0.4, lo)] + [(lo + 0.5 * k, 1.6, lo + 0.5 * k) for k in range(1, 7)]
+                             + [(lo + 3.5, 0.4, lo + 3.5)], s)
+    assert wide.gaps == ((lo, lo + 3.5),)
+    assert 0.0 < GRID_TOL_BAR <= 1e-6     # far below anything a plant could hold
+
+
 @pytest.mark.parametrize("value, message", [
     (0, "key 'advice.path_step_bar': must be >= 0.05, got 0"),
     (-1, "key 'advice.path_step_bar': expected a number >= 0, got -1"),

@@ -51,6 +51,9 @@ from .compressors import STAGES, CompressorLearner
 PI_MIN = 1.25      # the search's lowest pressure ratio of either stage [-]
 PLATEAU_TOL_BAR = 0.02   # set points whose p_m lies this close to the path's lowest are on the HS plateau
 BRACKET_BAR = 1.0        # a covered stretch from the HS plateau brackets an optimum this far below its top
+GRID_TOL_BAR = 1e-9      # the trusted path's p_m steps are multiples of its set-point grid (path_step_bar),
+                         # and so are min_covered_bar and gap_max_bar as shipped: a stretch of exactly
+                         # 3 bar came out 3.0 +- 1.5e-13, and its sign decided the confidence (stop 51)
 
 
 class AdviceError(ValueError):
@@ -253,7 +256,7 @@ def stretch_from_path(path: list, s: AdviceSettings) -> Trusted | None:
     a, b = float(pm[cov[0]]), float(pm[cov[-1]])
     # wide stretches between covered points where the path leaves the covered region
     gaps = tuple((float(pm[i]), float(pm[j])) for i, j in zip(cov[:-1], cov[1:])
-                 if j > i + 1 and pm[j] - pm[i] > s.gap_max_bar)
+                 if j > i + 1 and pm[j] - pm[i] > s.gap_max_bar + GRID_TOL_BAR)
     # the HS plateau: several set points give the lowest p_m of the path, and the plant has run there
     sp = np.array([z for _, _, z in path])
     floor = (pm <= pm[0] + PLATEAU_TOL_BAR) & np.isfinite(sp)
@@ -266,8 +269,9 @@ def too_short(trusted: Trusted, pm_opt: float, s: AdviceSettings) -> bool:
     """True when the plant has run over too short a stretch of p_m (less than ``min_covered_bar``)
     for the data to show where the optimum lies; not when the stretch starts at the HS plateau
     (nothing lower can be held) and the optimum's p_m ``pm_opt`` [bar(g)] lies at least
-    ``BRACKET_BAR`` below its top: the plant has run on both sides of it."""
-    if trusted.covered_hi - trusted.covered_lo >= s.min_covered_bar:
+    ``BRACKET_BAR`` below its top: the plant has run on both sides of it. (Lengths on the path's
+    set-point grid are compared with ``GRID_TOL_BAR``: rounding does not decide.)"""
+    if trusted.covered_hi - trusted.covered_lo >= s.min_covered_bar - GRID_TOL_BAR:
         return False
     return not (trusted.closed_below and pm_opt <= trusted.covered_hi - BRACKET_BAR + 1e-9)
 

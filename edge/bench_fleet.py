@@ -21,7 +21,15 @@ the README's 198 s from before issue 12) replayed on one core, in this process:
 * the *full-window* reference on the first ``ref_days`` of rows: the plain path with the advice
   evaluating every sample of the window instead of ``advice.representative_points`` (8) weighted
   means (the approximation the advice had before issue 12 already), against the fast path on the
-  same rows (a prefix: windows are tiled per history, so both run on the same prefix).
+  same rows (a prefix: windows are tiled per history, so both run on the same prefix). The synthetic
+  plant runs at one set point, so the advice is confident in none of those windows;
+* the *confident* full-window reference (``confident_reference``): the fleet bench's first plant
+  (simulator.export seed 1, the 'perturbed' compressors, a plant whose advice becomes confident once
+  its curves are learned; cached in var/bench-fleet) commissioned from a fast replay of its first
+  ``conf_start`` days (the initial calibration, the clean pressure drop and the learned curves, as a
+  state directory would hand them on), then its next ``conf_days`` days on the fast path and on the
+  full-window plain path: the recommended set points where both are confident, and how many windows
+  each is confident in.
 
 What is not switchable and so not compared: the joint Newton/Broyden solve of (T_m, T_c) and the warm
 starts (they converge to the same solver tolerances), the condenser factor's start at 1 in every
@@ -157,7 +165,8 @@ def _truth_error(windows: pd.DataFrame, truth: pd.DataFrame) -> float:
     return float(max(err)) if err else math.nan
 
 
-def bench_replay(params=None, days: float = 30.0, ref_days: float = 2.0, progress=None) -> dict:
+def bench_replay(params=None, days: float = 30.0, ref_days: float = 2.0, conf_start: float = 40.0,
+                 conf_days: float = 7.0, work_dir: str | Path | None = None, progress=None) -> dict:
     """See the module docstring; returns a JSON-able dict (figures, targets, pass flags)."""
     from model.analysis.replay import ReplaySettings, replay
     from model.measured import process
@@ -227,6 +236,9 @@ def bench_replay(params=None, days: float = 30.0, ref_days: float = 2.0, progres
             "fast_wall_s": wall_f, "full_wall_s": wall, "full_s_per_window": wall / max(len(r_full.windows), 1),
             "fast_vs_full": compare_windows(r_fast.windows, r_full.windows)}
 
+    if conf_days > 0:
+        out["confident_reference"] = confident_reference(conf_start, conf_days, work_dir)
+
     # ---- pass flags (a comparison without a window optimised on both sides passes nothing) -------
     def within(c: dict, key: str, target: str) -> bool:
         v = c[key]
@@ -244,7 +256,58 @@ def bench_replay(params=None, days: float = 30.0, ref_days: float = 2.0, progres
                                                       "R_th_f_max_abs_dev_K_per_kW")
         out["pass"]["p_m_sp_vs_full_window"] = within(c_full, "max_abs_dev_p_m_sp_opt_barg",
                                                       "p_m_sp_max_abs_dev_bar")
+    if "confident_reference" in out:
+        # every window optimised on both sides, as the other references (a window confident on one
+        # side only recommends the optimum there and the actual set point on the other); passes
+        # nothing unless some window is confident on both
+        c_conf = out["confident_reference"]
+        out["pass"]["R_th_f_vs_full_window_confident"] = within(c_conf["fast_vs_full"], "max_abs_dev_R_th_f_K_per_kW",
+                                                                "R_th_f_max_abs_dev_K_per_kW")
+        out["pass"]["p_m_sp_vs_full_window_confident"] = (
+            c_conf["windows_confident_in_both"] > 0
+            and within(c_conf["fast_vs_full"], "max_abs_dev_p_m_sp_opt_barg", "p_m_sp_max_abs_dev_bar"))
     return out
+
+
+def confident_reference(start_days: float = 40.0, days: float = 7.0, work_dir: str | Path | None = None,
+                        progress=None) -> dict:
+    """The full-window reference where the advice is confident (see the module docstring): the fleet
+    bench's first plant over ``start_days + days``, commissioned from a fast replay of its first
+    ``start_days``, then ``days`` replayed fast and on the full-window plain path (surrogate off in
+    both, as the other references)."""
+    from edge.io.history import read_history
+    from edge.plantfile import load_plant
+    from model.analysis.replay import ReplaySettings, replay
+    work = Path(work_dir) if work_dir else ROOT / "var" / "bench-fleet"
+    t = time.perf_counter()
+    entry = fleet_histories(work, 1, start_days + days, progress)[0]
+    gen = time.perf_counter() - t
+    params = load_plant(entry.plant)
+    h = read_history(entry.history).frame
+    ts = pd.to_datetime(h["timestamp"], utc=True)
+    cut = ts.iloc[0] + pd.Timedelta(days=start_days)
+    s_off = ReplaySettings.from_config(params.extra, surrogate=False)
+    r0, _, c_comm = _timed(lambda: replay(h[(ts < cut).to_numpy()].reset_index(drop=True), params, s_off))
+    comm = {"initial": r0.initial.to_dict(), "dp_clean": r0.dp_clean.to_dict(), "compressors": r0.compressors}
+    seg = h[(ts >= cut).to_numpy()].reset_index(drop=True)
+    r_fast, _, c_fast = _timed(lambda: replay(seg, params, s_off, commissioning=comm))
+    extra = copy.deepcopy(params.extra)
+    extra.setdefault("advice", {})["representative_points"] = 1_000_000   # every sample
+    full = dataclasses.replace(params, extra=extra)
+    with plain_path():
+        r_full, _, c_full = _timed(lambda: replay(seg, full, s_off, commissioning=comm))
+    m = r_fast.windows.merge(r_full.windows, on="window_start", suffixes=("_a", "_b"))
+    ca, cb = m["advice_confident_a"].astype(bool), m["advice_confident_b"].astype(bool)
+    d = (pd.to_numeric(m["p_m_sp_opt_barg_a"], errors="coerce")
+         - pd.to_numeric(m["p_m_sp_opt_barg_b"], errors="coerce")).abs()[ca & cb]
+    return {"plant": entry.name, "history_generation_s": gen, "commissioned_after_days": start_days,
+            "days": days, "period": [str(seg["timestamp"].iloc[0]), str(seg["timestamp"].iloc[-1])],
+            "windows": int(len(m)), "commissioning_replay_cpu_s": c_comm, "fast_cpu_s": c_fast,
+            "full_cpu_s": c_full, "windows_confident_fast": int(ca.sum()), "windows_confident_full": int(cb.sum()),
+            "windows_confident_in_both": int((ca & cb).sum()),
+            "max_abs_dev_p_m_sp_rec_confident_in_both_barg": float(d.max()) if len(d) else None,
+            "windows_dev_over_0.1_bar_confident_in_both": int((d > 0.1).sum()),
+            "fast_vs_full": compare_windows(r_fast.windows, r_full.windows)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -466,11 +529,11 @@ if __name__ == "__main__":  # pragma: no cover - python -m edge.bench_fleet flee
                          indent=2, default=float))
     elif args and args[0] == "replay":
         kw = {}
-        for key, v in zip(("days", "ref_days"), args[1:]):
+        for key, v in zip(("days", "ref_days", "conf_start", "conf_days"), args[1:]):
             kw[key] = float(v)
         print(json.dumps(bench_replay(**kw), indent=2, default=float))
     else:
-        print("usage: python -m edge.bench_fleet replay [DAYS [REF_DAYS]] | fleet [PLANTS [DAYS [WORKERS]]]"
-              " | year [DAYS]",
+        print("usage: python -m edge.bench_fleet replay [DAYS [REF_DAYS [CONF_START [CONF_DAYS]]]]"
+              " | fleet [PLANTS [DAYS [WORKERS]]] | year [DAYS]",
               file=sys.stderr)
         sys.exit(2)

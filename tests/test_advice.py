@@ -378,3 +378,70 @@ def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
     assert _shape_at(Learner(), plant, {}, replace(s, shape_k=0.0), p) == 0.0
     assert _scorer(Learner(), plant, {}, replace(s, shape_k=0.0)) is None
     assert _scorer(Learner(), plant, {}, replace(s, search_k=0.0)) is None
+
+
+# the window's samples placed around their representative points (advice.sample_spread), against
+# every sample solved at the path's set points: the LS pressure ratio is exact at a common p_m, the
+# HS ratio and the speeds are read at the actual set points (measured on this half day: HS ratio
+# 2.2e-4 relative, speeds 0.004 of nominal, distances 0.003 margins)
+SPREAD_PI_HS_REL_TOL = 1e-3
+SPREAD_N_TOL = 0.01          # of the nominal speed
+SPREAD_DIST_TOL = 0.01       # coverage distance [margins]
+
+
+def test_the_trusted_path_judges_the_windows_samples_not_their_means(plant):
+    """A path point's coverage distance is the largest over its rows, and a group's mean lies inside
+    its group: on the 8 representative means alone the covered stretch came out wider than on the
+    window's samples (0.5 bar, and confident, in 6 of 84 windows of the replay bench's confident
+    reference before stop 52). The trusted path now places the samples around their means
+    (advice.spread_at: the spread at one common set point, where the means are solved for the path
+    anyway) and judges those: here as every sample solved at every path set point, in a window at
+    one set point and in one across a set-point step (a sample's speed at its own set point is not
+    its speed at the group's)."""
+    from model.analysis.advice import (AdviceSettings, _distances, _operating_points, check_rows,
+                                       sample_spread, spread_at)
+    from model.analysis.compressors import CompressorLearner, observe
+    from model.optimize import Evaluator
+    from simulator.config import load_simulator_config
+    from simulator.export import export_history
+    cfg = load_simulator_config()
+    cfg = replace(cfg, control=replace(cfg.control, p_m_sp_schedule=((0.0, 16.0), (0.25, 13.0))))
+    hist = export_history(0.5, cfg=cfg).history
+    data = hist.loc[process(hist, plant)["usable"].to_numpy()].reset_index(drop=True)
+    ts = pd.to_datetime(data["timestamp"], utc=True)
+    learner = CompressorLearner(plant)
+    learner.update(observe(data.assign(timestamp=ts), plant))
+    s = AdviceSettings()
+    h = ((ts - ts.iloc[0]) / pd.Timedelta(hours=1)).to_numpy()
+    seen_means_wrong = False
+    for h0 in (0.0, 5.0):                  # two hours at 16 bar(g); the step to 13 bar(g) at 6 h
+        c = check_rows(data.loc[(h >= h0) & (h < h0 + 2.0)], s)
+        assert len(c.data) == s.check_rows and len(c.parts) == s.representative_points
+        ev = Evaluator(c.rows, c.w, plant)
+        full = Evaluator(c.data, np.ones(len(c.data)), plant, guess_from=ev)
+        xs = [float(x) for x in np.arange(11.0, 19.01, s.path_step_bar)]
+        reps, samples = ev.at_many(xs), full.at_many(xs)
+        assert all(p.ok for p in reps + samples)
+        spread = spread_at(ev, full, c.parts, plant, [None, *xs], c.actual)
+        order = np.concatenate(c.parts)
+        for st, pi_tol in (("LS", 1e-12), ("HS", SPREAD_PI_HS_REL_TOL)):
+            g, r_pi, d_n, (n_lo, n_hi) = spread[st]
+            assert np.array_equal(g, np.concatenate([np.full(len(p), k) for k, p in enumerate(c.parts)]))
+            for p, f in zip(reps, samples):
+                pi_g, n_g = _operating_points(p, plant)[st]
+                pi_s, n_s = _operating_points(f, plant)[st]
+                assert np.max(np.abs(pi_g[g] * r_pi / pi_s[order] - 1.0)) <= pi_tol, (h0, st, p.sp)
+                n = np.clip(n_g[g] + d_n, n_lo, n_hi)
+                assert np.max(np.abs(n - n_s[order])) <= SPREAD_N_TOL, (h0, st, p.sp)
+        on_means = np.array(_distances(learner, plant, {}, reps))
+        placed = np.array(_distances(learner, plant, {}, reps, spread))
+        every = np.array(_distances(learner, plant, {}, samples))
+        assert np.max(np.abs(placed - every)) <= SPREAD_DIST_TOL, h0
+        assert np.array_equal(placed <= 1.0, every <= 1.0), h0
+        seen_means_wrong |= bool(((on_means <= 1.0) & (every > 1.0)).any())
+    # the case the spread is for: a set point the means call covered and the samples do not
+    assert seen_means_wrong
+    # every check row its own group: the path runs on the samples themselves
+    one = [np.array([i]) for i in range(len(c.data))]
+    assert sample_spread(full.at(16.0), full.at(16.0), one, plant) is None
+    assert spread_at(full, full, one, plant, xs, c.actual) is None

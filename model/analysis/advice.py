@@ -161,11 +161,13 @@ def _operating_points(p: Point, params: PlantParams) -> dict:
     return out
 
 
-def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, points: list) -> list:
+def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, points: list,
+               spread: dict | None = None) -> list:
     """Per evaluation of ``points`` (all ok): the largest coverage distance (margin units) of its
     rows over the learned stages, offsets applied; 0 inside the covered hull. One
     ``coverage_distance`` call per stage for the rows of all points (it is row by row: the same
-    numbers as a call per point)."""
+    numbers as a call per point). ``spread`` (``sample_spread``): the rows are representative
+    points, and the distance is judged on the window's samples placed around them instead."""
     if not points:
         return []
     d = np.zeros(len(points))
@@ -174,11 +176,64 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
     for st in STAGES:
         if learner.learned(st, "eta_is"):
             d_pi, d_n = offsets.get(st, (0.0, 0.0))
+            if spread is not None and st in spread:
+                g, r_pi, d_ns, (n_lo, n_hi) = spread[st]
+                pi = np.stack([o[st][0] for o in ops])[:, g] * r_pi      # (points, samples)
+                n = np.clip(np.stack([o[st][1] for o in ops])[:, g] + d_ns, n_lo, n_hi)
+                dist = learner.coverage_distance(st, pi.ravel() - d_pi, n.ravel() - d_n)
+                d = np.maximum(d, dist.reshape(pi.shape).max(axis=1))
+                continue
             pi = np.concatenate([o[st][0] for o in ops])
             n = np.concatenate([o[st][1] for o in ops])
             dist = learner.coverage_distance(st, pi - d_pi, n - d_n)
             d = np.maximum(d, np.maximum.reduceat(dist, bounds[:-1]))   # each point's rows' largest
     return [float(x) for x in d]
+
+
+def sample_spread(rep: Point, samples: Point, parts: list, params: PlantParams) -> dict | None:
+    """Where the window's samples lie around their representative points, from both solved at one
+    common set point: per stage (group of each sample, its pressure ratio over its group's, its
+    speed minus its group's [of the nominal speed]). At a common p_m a sample's LS ratio p_m / p_e
+    is its group's times p_e,group / p_e,sample and its HS ratio p_c / p_m its group's times
+    p_c,sample / p_c,group, at any set point; its speed offset is the one at this set point (the
+    placed speed is held to the compressor's speed range). Not at the samples' own set points: a
+    sample just after a set-point step runs at another speed than its group for that reason alone.
+    A group's mean lies inside the group: on the means alone the covered stretch came out wider
+    than on the samples (0.5 bar, and confident, in 6 of 84 windows of the replay bench's confident
+    reference before stop 52). None when every group is one sample (the path then runs on the
+    samples themselves)."""
+    if all(len(g) == 1 for g in parts):
+        return None
+    idx = np.concatenate(parts)
+    grp = np.concatenate([np.full(len(g), k) for k, g in enumerate(parts)])
+    ok = np.ones(len(idx), dtype=bool)
+    cols = {}
+    for c in ("p_e_bar", "p_c_bar", "N_LS_rpm", "N_HS_rpm"):
+        a, b = np.asarray(samples.col(c), dtype=float)[idx], np.asarray(rep.col(c), dtype=float)[grp]
+        ok &= np.isfinite(a) & np.isfinite(b)
+        cols[c] = (a, b)
+    if not ok.any():
+        return None
+    (pe_s, pe_g), (pc_s, pc_g) = cols["p_e_bar"], cols["p_c_bar"]
+    out = {}
+    for st, ratio, comp in (("LS", pe_g / pe_s, params.comp_LS), ("HS", pc_s / pc_g, params.comp_HS)):
+        n_s, n_g = cols[f"N_{st}_rpm"]
+        out[st] = (grp[ok], ratio[ok], (n_s - n_g)[ok] / comp.N_nom,
+                   (comp.N_min / comp.N_nom, comp.N_max / comp.N_nom))
+    return out
+
+
+def spread_at(ev: Evaluator, samples: Evaluator, parts: list, params: PlantParams, xs: list,
+              actual: float) -> dict | None:
+    """``sample_spread`` at the grid set point of ``xs`` nearest the window's ``actual`` set point
+    (the representative points are solved there for the path already; the samples warm-start from
+    them: one more solver call per window)."""
+    grid = [x for x in xs if x is not None]
+    if not grid or all(len(g) == 1 for g in parts):
+        return None
+    x0 = min(grid, key=lambda x: (abs(x - actual), x))
+    rep, smp = ev.at(x0), samples.at(x0)
+    return sample_spread(rep, smp, parts, params) if rep.ok else None
 
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
@@ -228,17 +283,21 @@ class Trusted:
 
 
 def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: PlantParams,
-                    offsets: dict, lo: float, hi: float, s: AdviceSettings) -> Trusted | None:
+                    offsets: dict, lo: float, hi: float, s: AdviceSettings,
+                    samples: tuple | None = None) -> Trusted | None:
     """The window's ``Trusted`` stretch, from the evaluator's rows at set points every
     ``path_step_bar`` over [lo, hi] and at the actual set points (None when no compressor curve is
     learned yet, or when no set point puts the window's operating points inside the covered
-    region)."""
+    region). ``samples``: (Evaluator of the window's samples, their groups (the evaluator's rows are
+    the groups' means), the actual set point [bar(g)]): the path judges the samples placed around
+    the means (``spread_at``) instead of the means."""
     if learner is None or not any(learner.learned(st, "eta_is") for st in STAGES):
         return None
     amb = params.ambient_pressure / 1e5
     xs = [None, *(float(x) for x in np.arange(lo, hi + 1e-9, s.path_step_bar))]
     done = [(x, p) for x, p in zip(xs, ev.at_many(xs)) if p.ok]
-    dist = _distances(learner, params, offsets, [p for _, p in done])
+    spread = spread_at(ev, samples[0], samples[1], params, xs, samples[2]) if samples is not None else None
+    dist = _distances(learner, params, offsets, [p for _, p in done], spread)
     path = [(_pm_barg(p, ev.w, amb), d, math.nan if x is None else float(x))
             for (x, p), d in zip(done, dist)]
     return stretch_from_path(path, s)
@@ -571,7 +630,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             d_pi = float(np.nanmean(pi_x - pi_m)) if np.isfinite(pi_m).any() else 0.0
             d_n = float(np.nanmean(n_x - n_m)) if np.isfinite(n_m).any() else 0.0
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
-    trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s)
+    trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s, (full, parts, actual))
     feasible = _feasible(trusted, ev.w, amb)
     score = _scorer(learner, adaptive, offsets, s)
     optimizer, sp_opt, p_opt = "search", None, None

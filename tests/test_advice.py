@@ -422,7 +422,7 @@ def test_the_trusted_path_judges_the_windows_samples_not_their_means(plant):
         xs = [float(x) for x in np.arange(11.0, 19.01, s.path_step_bar)]
         reps, samples = ev.at_many(xs), full.at_many(xs)
         assert all(p.ok for p in reps + samples)
-        spread = spread_at(ev, full, c.parts, plant, [None, *xs], c.actual)
+        spread = spread_at(ev, c.data, c.parts, plant, [None, *xs], c.actual)
         order = np.concatenate(c.parts)
         for st, pi_tol in (("LS", 1e-12), ("HS", SPREAD_PI_HS_REL_TOL)):
             g, r_pi, d_n, (n_lo, n_hi) = spread[st]
@@ -444,4 +444,4 @@ def test_the_trusted_path_judges_the_windows_samples_not_their_means(plant):
     # every check row its own group: the path runs on the samples themselves
     one = [np.array([i]) for i in range(len(c.data))]
     assert sample_spread(full.at(16.0), full.at(16.0), one, plant) is None
-    assert spread_at(full, full, one, plant, xs, c.actual) is None
+    assert spread_at(full, c.data, one, plant, xs, c.actual) is None

@@ -6,7 +6,8 @@ For one window of usable samples and the adaptive model with the learned compres
    the window (``representative_points``), restricted to the intermediate pressures the learned
    curves vouch for (``trusted_stretch``): the stretch of p_m over which this window's compressor
    operating points (pi, n) of both stages lie in the covered region (plus its margin), found on a
-   set-point grid, widened by ``extrapolation_share`` of its length (at most
+   set-point grid (the window's check samples placed around the representative points,
+   ``spread_at``), widened by ``extrapolation_share`` of its length (at most
    ``extrapolation_max_bar``). A plant that has run over a wide range of p_m has shown the curves'
    slope along it, and the search may go a share of that range further; the learned curves are not
    extrapolated beyond;
@@ -223,17 +224,24 @@ def sample_spread(rep: Point, samples: Point, parts: list, params: PlantParams) 
     return out
 
 
-def spread_at(ev: Evaluator, samples: Evaluator, parts: list, params: PlantParams, xs: list,
+def spread_at(ev: Evaluator, samples: pd.DataFrame, parts: list, params: PlantParams, xs: list,
               actual: float) -> dict | None:
-    """``sample_spread`` at the grid set point of ``xs`` nearest the window's ``actual`` set point
-    (the representative points are solved there for the path already; the samples warm-start from
-    them: one more solver call per window)."""
+    """``sample_spread`` at the grid set point of ``xs`` nearest the window's ``actual`` set point:
+    the representative points (``ev``) are solved there for the path already, and the window's
+    ``samples`` (their groups ``parts``) once, in an Evaluator of their own started from the
+    representative points' solutions (one more solver call per window; not the advice's
+    whole-window Evaluator, whose later warm starts would then come from this set point: a sample
+    that solves at the recommended set point from the representative points' solution there may
+    not from a solution a bar away — the volumetric curve's domain at the HS speed limit)."""
     grid = [x for x in xs if x is not None]
     if not grid or all(len(g) == 1 for g in parts):
         return None
     x0 = min(grid, key=lambda x: (abs(x - actual), x))
-    rep, smp = ev.at(x0), samples.at(x0)
-    return sample_spread(rep, smp, parts, params) if rep.ok else None
+    rep = ev.at(x0)
+    if not rep.ok:
+        return None
+    smp = Evaluator(samples, np.ones(len(samples)), params, ls_mode=ev.ls_mode, guess_from=ev).at(x0)
+    return sample_spread(rep, smp, parts, params)
 
 
 def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
@@ -288,9 +296,9 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
     """The window's ``Trusted`` stretch, from the evaluator's rows at set points every
     ``path_step_bar`` over [lo, hi] and at the actual set points (None when no compressor curve is
     learned yet, or when no set point puts the window's operating points inside the covered
-    region). ``samples``: (Evaluator of the window's samples, their groups (the evaluator's rows are
-    the groups' means), the actual set point [bar(g)]): the path judges the samples placed around
-    the means (``spread_at``) instead of the means."""
+    region). ``samples``: (the window's samples (canonical inputs), their groups (the evaluator's
+    rows are the groups' means), the actual set point [bar(g)]): the path judges the samples placed
+    around the means (``spread_at``) instead of the means."""
     if learner is None or not any(learner.learned(st, "eta_is") for st in STAGES):
         return None
     amb = params.ambient_pressure / 1e5
@@ -630,7 +638,7 @@ def draft_advice(data: pd.DataFrame, adaptive: PlantParams, learner: CompressorL
             d_pi = float(np.nanmean(pi_x - pi_m)) if np.isfinite(pi_m).any() else 0.0
             d_n = float(np.nanmean(n_x - n_m)) if np.isfinite(n_m).any() else 0.0
             offsets[st] = (d_pi if math.isfinite(d_pi) else 0.0, d_n if math.isfinite(d_n) else 0.0)
-    trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s, (full, parts, actual))
+    trusted = trusted_stretch(ev, learner, adaptive, offsets, lo, hi, s, (data, parts, actual))
     feasible = _feasible(trusted, ev.w, amb)
     score = _scorer(learner, adaptive, offsets, s)
     optimizer, sp_opt, p_opt = "search", None, None

@@ -163,17 +163,22 @@ def _operating_points(p: Point, params: PlantParams) -> dict:
 
 
 def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, points: list,
-               spread: dict | None = None) -> list:
+               spread: dict | None = None, share: float | None = None,
+               w: np.ndarray | None = None) -> list:
     """Per evaluation of ``points`` (all ok): the largest coverage distance (margin units) of its
     rows over the learned stages, offsets applied; 0 inside the covered hull. One
     ``coverage_distance`` call per stage for the rows of all points (it is row by row: the same
     numbers as a call per point). ``spread`` (``sample_spread``): the rows are representative
-    points, and the distance is judged on the window's samples placed around them instead."""
+    points, and the distance is judged on the window's samples placed around them instead.
+    ``share``: not the largest over the rows but the distance within which at least that share of
+    them lie (``within_share``; a row's distance the larger of its stages'), the rows weighted by
+    ``w`` (the points' weights; each placed sample 1): the points' rows must be as many."""
     if not points:
         return []
     d = np.zeros(len(points))
     ops = [_operating_points(p, params) for p in points]
     bounds = np.concatenate([[0], np.cumsum([len(p.col("p_m_bar")) for p in points])])
+    rows = None                     # with ``share``: (points, rows), the larger of the stages'
     for st in STAGES:
         if learner.learned(st, "eta_is"):
             d_pi, d_n = offsets.get(st, (0.0, 0.0))
@@ -181,14 +186,36 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
                 g, r_pi, d_ns, (n_lo, n_hi) = spread[st]
                 pi = np.stack([o[st][0] for o in ops])[:, g] * r_pi      # (points, samples)
                 n = np.clip(np.stack([o[st][1] for o in ops])[:, g] + d_ns, n_lo, n_hi)
-                dist = learner.coverage_distance(st, pi.ravel() - d_pi, n.ravel() - d_n)
-                d = np.maximum(d, dist.reshape(pi.shape).max(axis=1))
+                dist = learner.coverage_distance(st, pi.ravel() - d_pi, n.ravel() - d_n).reshape(pi.shape)
+            elif share is not None:
+                pi = np.stack([o[st][0] for o in ops])
+                n = np.stack([o[st][1] for o in ops])
+                dist = learner.coverage_distance(st, pi.ravel() - d_pi, n.ravel() - d_n).reshape(pi.shape)
+            else:
+                pi = np.concatenate([o[st][0] for o in ops])
+                n = np.concatenate([o[st][1] for o in ops])
+                dist = learner.coverage_distance(st, pi - d_pi, n - d_n)
+                d = np.maximum(d, np.maximum.reduceat(dist, bounds[:-1]))   # each point's rows' largest
                 continue
-            pi = np.concatenate([o[st][0] for o in ops])
-            n = np.concatenate([o[st][1] for o in ops])
-            dist = learner.coverage_distance(st, pi - d_pi, n - d_n)
-            d = np.maximum(d, np.maximum.reduceat(dist, bounds[:-1]))   # each point's rows' largest
+            if share is None:
+                d = np.maximum(d, dist.max(axis=1))
+            else:
+                rows = dist if rows is None else np.maximum(rows, dist)
+    if rows is not None:
+        if spread is not None:
+            w = np.ones(rows.shape[1])
+        d = within_share(rows, np.ones(rows.shape[1]) if w is None else np.asarray(w, dtype=float), share)
     return [float(x) for x in d]
+
+
+def within_share(dist: np.ndarray, w: np.ndarray, share: float) -> np.ndarray:
+    """Per row of ``dist`` (points x rows): the smallest of its distances within which at least
+    ``share`` of the weight ``w`` (per column) lies."""
+    order = np.argsort(dist, axis=1, kind="stable")
+    ds = np.take_along_axis(dist, order, axis=1)
+    cw = np.cumsum(w[order], axis=1)
+    k = (cw < share * cw[:, -1:] * (1.0 - 1e-12)).sum(axis=1)
+    return ds[np.arange(len(ds)), np.minimum(k, ds.shape[1] - 1)]
 
 
 def sample_spread(rep: Point, samples: Point, parts: list, params: PlantParams) -> dict | None:
@@ -305,7 +332,8 @@ def trusted_stretch(ev: Evaluator, learner: CompressorLearner | None, params: Pl
     xs = [None, *(float(x) for x in np.arange(lo, hi + 1e-9, s.path_step_bar))]
     done = [(x, p) for x, p in zip(xs, ev.at_many(xs)) if p.ok]
     spread = spread_at(ev, samples[0], samples[1], params, xs, samples[2]) if samples is not None else None
-    dist = _distances(learner, params, offsets, [p for _, p in done], spread)
+    dist = _distances(learner, params, offsets, [p for _, p in done], spread,
+                      share=s.min_coverage_share, w=ev.w)
     path = [(_pm_barg(p, ev.w, amb), d, math.nan if x is None else float(x))
             for (x, p), d in zip(done, dist)]
     return stretch_from_path(path, s)

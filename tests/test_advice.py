@@ -439,9 +439,32 @@ def test_the_trusted_path_judges_the_windows_samples_not_their_means(plant):
         assert np.max(np.abs(placed - every)) <= SPREAD_DIST_TOL, h0
         assert np.array_equal(placed <= 1.0, every <= 1.0), h0
         seen_means_wrong |= bool(((on_means <= 1.0) & (every > 1.0)).any())
+        # the trusted path's rule: covered where min_coverage_share of the samples lie inside
+        share = s.min_coverage_share
+        placed_q = np.array(_distances(learner, plant, {}, reps, spread, share=share, w=ev.w))
+        every_q = np.array(_distances(learner, plant, {}, samples, share=share, w=full.w))
+        assert np.max(np.abs(placed_q - every_q)) <= SPREAD_DIST_TOL, h0
+        assert np.array_equal(placed_q <= 1.0, every_q <= 1.0), h0
+        assert np.all(placed_q <= placed) and np.all(every_q <= every)
     # the case the spread is for: a set point the means call covered and the samples do not
     assert seen_means_wrong
     # every check row its own group: the path runs on the samples themselves
     one = [np.array([i]) for i in range(len(c.data))]
     assert sample_spread(full.at(16.0), full.at(16.0), one, plant) is None
     assert spread_at(full, c.data, one, plant, xs, c.actual) is None
+
+
+def test_the_distance_within_a_share_of_the_rows_is_a_weighted_quantile():
+    """advice.within_share: per point the smallest distance within which at least the share of the
+    rows' weight lies (the trusted path's rule: covered where min_coverage_share of the window's
+    samples lie in the covered region, so that one sample outside does not cut the stretch)."""
+    from model.analysis.advice import within_share
+    d = np.array([[0.5, 3.0, 0.2, 0.9, 1.5], [np.inf, 0.1, 0.2, 0.3, 0.4]])
+    ones = np.ones(5)
+    assert within_share(d, ones, 0.8).tolist() == [1.5, 0.4]       # 4 of 5 rows within
+    assert within_share(d, ones, 0.6).tolist() == [0.9, 0.3]       # 3 of 5
+    assert within_share(d, ones, 1.0).tolist() == [3.0, np.inf]    # all: the largest
+    w = np.array([1.0, 1.0, 1.0, 1.0, 6.0])                        # the last row is 60 % of the weight
+    assert within_share(d, w, 0.8).tolist() == [1.5, 0.4]
+    assert within_share(d, w, 0.3).tolist() == [0.9, 0.3]
+    assert within_share(d, np.array([1.0, 1.0, 1.0, 1.0, 1.0]), 0.8 - 1e-15).tolist() == [1.5, 0.4]

@@ -4,10 +4,10 @@ For one window of usable samples and the adaptive model with the learned compres
 
 1. the COP-optimal p_m,sp by ``model.optimize.search`` on a few representative operating points of
    the window (``representative_points``), restricted to the intermediate pressures the learned
-   curves vouch for (``trusted_stretch``): the stretch of p_m over which this window's compressor
-   operating points (pi, n) of both stages lie in the covered region (plus its margin), found on a
-   set-point grid (the window's check samples placed around the representative points,
-   ``spread_at``), widened by ``extrapolation_share`` of its length (at most
+   curves vouch for (``trusted_stretch``): the stretch of p_m over which at least
+   ``min_coverage_share`` of this window's compressor operating points (pi, n) of both stages lie
+   in the covered region (plus its margin), found on a set-point grid (the window's check samples
+   placed around the representative points, ``spread_at``), widened by ``extrapolation_share`` of its length (at most
    ``extrapolation_max_bar``). A plant that has run over a wide range of p_m has shown the curves'
    slope along it, and the search may go a share of that range further; the learned curves are not
    extrapolated beyond;
@@ -285,8 +285,9 @@ def _pm_barg(p: Point, w: np.ndarray, amb: float) -> float:
 @dataclass(frozen=True)
 class Trusted:
     """The stretch of intermediate pressure the learned curves vouch for in one window's conditions
-    [bar(g)]: covered_lo..covered_hi where the plant's compressors have run (the window's operating
-    points at those p_m lie within the covered (pi, n) region plus its margin), widened on both
+    [bar(g)]: covered_lo..covered_hi where the plant's compressors have run (at least
+    ``min_coverage_share`` of the window's operating points at those p_m lie within the covered
+    (pi, n) region plus its margin), widened on both
     sides by ``extension`` (a share of the covered stretch's length, at most a stated maximum): a
     plant that has run over a wide range of p_m has shown the curves' slope, and the search may go
     that much further; a plant that has only run at one p_m has shown no slope and gets almost no

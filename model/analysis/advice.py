@@ -7,8 +7,8 @@ For one window of usable samples and the adaptive model with the learned compres
    curves vouch for (``trusted_stretch``): the stretch of p_m over which at least
    ``min_coverage_share`` of this window's compressor operating points (pi, n) of both stages lie
    in the covered region (plus its margin), found on a set-point grid (the window's check samples
-   placed around the representative points, ``spread_at``), widened by ``extrapolation_share`` of its length (at most
-   ``extrapolation_max_bar``). A plant that has run over a wide range of p_m has shown the curves'
+   placed around the representative points, ``spread_at``), widened by ``extrapolation_share`` of
+   its length (at most ``extrapolation_max_bar``). A plant that has run over a wide range of p_m has shown the curves'
    slope along it, and the search may go a share of that range further; the learned curves are not
    extrapolated beyond;
 2. a dead band: the previous recommendation is kept unless the new optimum is worth more than
@@ -201,10 +201,9 @@ def _distances(learner: CompressorLearner, params: PlantParams, offsets: dict, p
                 d = np.maximum(d, dist.max(axis=1))
             else:
                 rows = dist if rows is None else np.maximum(rows, dist)
-    if rows is not None:
-        if spread is not None:
-            w = np.ones(rows.shape[1])
-        d = within_share(rows, np.ones(rows.shape[1]) if w is None else np.asarray(w, dtype=float), share)
+    if rows is not None:            # each placed sample weighs 1, the points' rows ``w``
+        wr = np.ones(rows.shape[1]) if spread is not None or w is None else np.asarray(w, dtype=float)
+        d = within_share(rows, wr, share)
     return [float(x) for x in d]
 
 

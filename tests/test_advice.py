@@ -468,3 +468,28 @@ def test_the_distance_within_a_share_of_the_rows_is_a_weighted_quantile():
     assert within_share(d, w, 0.8).tolist() == [1.5, 0.4]
     assert within_share(d, w, 0.3).tolist() == [0.9, 0.3]
     assert within_share(d, np.array([1.0, 1.0, 1.0, 1.0, 1.0]), 0.8 - 1e-15).tolist() == [1.5, 0.4]
+
+
+@pytest.mark.parametrize("value, message", [
+    (1.5, "key 'advice.min_coverage_share': must be > 0 and <= 1, got 1.5"),
+    (0, "key 'advice.min_coverage_share': must be > 0 and <= 1, got 0"),
+])
+def test_a_coverage_share_outside_zero_to_one_is_refused_with_its_key(tmp_path, value, message):
+    """min_coverage_share is a share of the window's samples (the confidence rule and, since stop
+    52, the trusted path's): a value above 1 would make both silently mean 'all of them'; refused
+    when plant.yaml is read, naming the file and the key."""
+    import yaml
+
+    from edge.plantfile import PlantFileError, load_plant
+    from model.analysis.advice import AdviceError, AdviceSettings
+    with pytest.raises(AdviceError) as exc:
+        AdviceSettings.from_dict({"min_coverage_share": value})
+    assert str(exc.value) == message
+    doc = yaml.safe_load((Path(__file__).resolve().parent.parent / "config" / "plant.yaml").read_text())
+    doc["advice"] = {"min_coverage_share": value}
+    f = tmp_path / "plant.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(PlantFileError) as exc:
+        load_plant(f)
+    assert str(exc.value) == f"{f}: {message}"
+    assert AdviceSettings.from_dict({"min_coverage_share": 1}).min_coverage_share == 1.0

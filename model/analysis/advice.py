@@ -115,6 +115,9 @@ class AdviceSettings:
             raise AdviceError("key 'advice.representative_points': must be >= 1")
         if not s.path_step_bar >= 0.05:      # the trusted stretch's set-point grid
             raise AdviceError(f"key 'advice.path_step_bar': must be >= 0.05, got {s.path_step_bar:g}")
+        if not 0.0 < s.min_coverage_share <= 1.0:     # a share of the samples (also the trusted path's)
+            raise AdviceError(f"key 'advice.min_coverage_share': must be > 0 and <= 1, "
+                              f"got {s.min_coverage_share:g}")
         return s
 
 

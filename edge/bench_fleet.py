@@ -435,10 +435,13 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
     bench's first plant (simulator.export, seed 1, the 'perturbed' compressor family) over ``days``
     (cached in var/bench-fleet). Checks the fleet bench's arithmetic, which scales a 30-day
     replay's cost per window to a year: the CPU per window in each quarter of the year (a cost that
-    grew with the history behind a window would show here) and over the whole year."""
+    grew with the history behind a window would show here) and over the whole year, and where it
+    goes (``parts``: ``edge.benchparts.PartTimer`` around the replay)."""
     from edge.io.history import read_history
     from edge.plantfile import load_plant
     from model.analysis.replay import ReplaySettings, replay
+
+    from edge.benchparts import PartTimer
     work = Path(work_dir) if work_dir else ROOT / "var" / "bench-fleet"
     out: dict = {"targets": {"plant_years_100_on_16_workers_min": TARGETS["plant_years_100_on_16_workers_min"]},
                  "days": days, "load_average_at_start": list(os.getloadavg())}
@@ -460,9 +463,10 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
             progress(f"plant-year: window {done} of {total}")
 
     settings = ReplaySettings.from_config(params.extra)
-    t, c = time.perf_counter(), time.process_time()
-    res = replay(h, params, settings, progress=tick)
-    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    with PartTimer() as parts:
+        t, c = time.perf_counter(), time.process_time()
+        res = replay(h, params, settings, progress=tick)
+        wall, cpu = time.perf_counter() - t, time.process_time() - c
     n = len(res.windows)
     # what a fleet task does besides the replay: the plant's directory written (as
     # edge.fleet.write_plant_dir does), into a scratch directory
@@ -500,7 +504,7 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
                 "cpu_s_per_window_by_quarter": quarters,
                 "last_to_first_quarter": (quarters[-1] / quarters[0]) if len(quarters) == 4 else None,
                 "speed_kernel": speed_kernel(), "windows_per_plant_day": windows_per_day,
-                "max_rss_mb": _max_rss_mb(),
+                "max_rss_mb": _max_rss_mb(), "parts": parts.report(cpu, n),
                 "extrapolation": {
                     "how": "100 plant-years on 16 workers from this plant-year's fleet task (the history "
                            "read, the replay, the plant's directory written) per window: 100 x 365 x "

@@ -286,6 +286,10 @@ def test_plant_year_bench_runs_and_adds_up(tmp_path):
     assert out["extrapolation"]["windows_spread_evenly_min"] == pytest.approx(100 * year_s / 16 / 60)
     assert out["pass"]["plant_years_100_on_16_workers"] is (7 * year_s / 60 <= 10.0)
     assert out["max_rss_mb"] > 50
+    parts = out["parts"]                     # where it goes (edge.benchparts; tests/test_benchparts.py)
+    assert parts["cpu_s"]["replay"] == out["cpu_s"]
+    assert parts["calls"]["pass3"] == out["windows"] and parts["calls"]["pass2_windows"] == out["windows"]
+    assert 0 < parts["cpu_s"]["pass2_solver"] < parts["cpu_s"]["pass2"] < out["cpu_s"]
 
 
 def test_a_replay_collects_garbage_less_often_and_restores_the_threshold():

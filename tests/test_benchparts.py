@@ -1,0 +1,111 @@
+"""``edge.benchparts.PartTimer``: where a replay's CPU goes (the plant-year bench's ``parts``)."""
+from __future__ import annotations
+
+import importlib
+import time
+
+import pytest
+
+from edge.benchparts import TIMED, PartTimer
+from model.analysis.replay import replay
+from simulator.synthetic import Noise, Operation, Truth, generate
+
+# CPU clocks read in different threads are summed: a sum of parts may exceed its whole by the
+# clocks' granularity per call (thread_time and process_time: well below a microsecond on Linux)
+# and by the wrappers' own cost, which lands in the outer part only
+CLOCK_SLACK_S = 0.05
+
+
+def _originals():
+    out = {}
+    for mod, path, _, _ in TIMED:
+        owner = importlib.import_module(mod)
+        *outer, name = path.split(".")
+        for a in outer:
+            owner = getattr(owner, a)
+        out[(mod, path)] = owner.__dict__[name]
+    return out
+
+
+@pytest.fixture(scope="module")
+def history(plant):
+    """Commissioning, then 10 h of operation: 5 windows of 2 h after the first."""
+    op = Operation(hours=12, commissioning_minutes=120, gap_after_commissioning_days=5)
+    return generate(plant, op, Truth(), Noise(), seed=5).history
+
+
+def test_the_part_timer_splits_a_replay_without_changing_it(plant, history):
+    """Every part measured, each inside its whole (pass 2's solver and windows inside pass 2, the
+    draft's steps inside the draft, the passes inside the replay), one pass-2 and one pass-3 call
+    per analysed window, the windows the same as without the timer, the functions put back."""
+    before = _originals()
+    plain = replay(history, plant)
+    with PartTimer() as pt:
+        c = time.process_time()
+        timed = replay(history, plant)
+        cpu = time.process_time() - c
+    assert _originals() == before
+    assert timed.windows.equals(plain.windows), "the timer changed the replay's windows"
+    n = len(timed.windows)
+    assert n >= 4
+    r = pt.report(cpu, n)
+    s, calls = r["cpu_s"], r["calls"]
+    assert all(v >= 0 for k, v in s.items() if k not in ("pass2_lockstep", "rest")), s
+    assert s["pass2_solver"] > 0 and s["pass2_windows"] > 0 and s["pass3"] > 0 and s["pass1_prepare"] > 0
+    assert s["pass2_solver"] + s["pass2_windows"] <= s["pass2"] + CLOCK_SLACK_S
+    assert s["pass2_lockstep"] >= -CLOCK_SLACK_S
+    draft_steps = (s["pass2_windows_advice_searches"] + s["pass2_windows_advice_trusted_stretch"]
+                   + s["pass2_windows_advice_draws"])
+    assert draft_steps <= s["pass2_windows_advice_draft"] + CLOCK_SLACK_S
+    assert s["pass2_windows_advice_draft"] + s["pass2_windows_fouling_calibration"] \
+        <= s["pass2_windows"] + CLOCK_SLACK_S
+    assert s["pass3_forecast"] + s["pass3_dead_band"] + s["pass3_surrogate_tracker"] <= s["pass3"] + CLOCK_SLACK_S
+    assert s["pass1_prepare"] + s["pass2"] + s["pass3"] <= cpu + CLOCK_SLACK_S
+    assert s["rest"] == pytest.approx(cpu - s["pass1_prepare"] - s["pass2"] - s["pass3"])
+    assert s["replay"] == cpu
+    # every window prepared, analysed, drafted and settled once (all of them calibrate here)
+    assert set(timed.windows["status"]) == {"ok"}
+    for part in ("pass1_prepare", "pass2_windows", "pass2_windows_advice_draft", "pass3", "pass3_dead_band"):
+        assert calls[part] == n, part
+    assert calls["pass2"] == 1 and calls["pass2_solver"] >= 3     # one lockstep chunk, its rounds
+    assert r["ms_per_window"]["replay"] == pytest.approx(1e3 * cpu / n)
+    assert r["share_of_replay"]["replay"] == pytest.approx(1.0)
+
+
+def test_the_part_timer_puts_the_functions_back_when_the_block_raises():
+    before = _originals()
+    with pytest.raises(RuntimeError, match="^inside$"):
+        with PartTimer():
+            assert _originals() != before
+            raise RuntimeError("inside")
+    assert _originals() == before
+
+
+def test_a_part_that_cannot_be_found_leaves_nothing_wrapped():
+    """A misspelt entry fails at the start and unwraps the entries before it."""
+    before = _originals()
+    with pytest.raises(KeyError):
+        with PartTimer(TIMED + (("model.analysis.chain", "AnalysisChain.no_such_step", "x", "process"),)):
+            pass                                         # pragma: no cover - not reached
+    assert _originals() == before
+
+
+def test_the_dead_bands_draws_are_pass_threes_not_the_drafts():
+    """``_draws_at`` runs in the draft (pass 2) and in the dead band (pass 3): inside pass 3 the
+    pass-2 parts are not counted (they are in pass 3's time)."""
+    import sys
+    import types
+    mod = types.ModuleType("benchparts_probe")
+    mod.draws = lambda: sum(range(1000))
+    mod.finish = lambda: mod.draws()
+    sys.modules[mod.__name__] = mod
+    try:
+        with PartTimer(((mod.__name__, "finish", "pass3", "process"),
+                        (mod.__name__, "draws", "pass2_windows_advice_draws", "thread"))) as pt:
+            mod.draws()                 # the draft's
+            mod.finish()                # the dead band's, inside pass 3
+            mod.finish()
+        calls = pt.report(1.0, 1)["calls"]
+        assert calls == {"pass3": 2, "pass2_windows_advice_draws": 1}
+    finally:
+        del sys.modules[mod.__name__]

@@ -437,11 +437,10 @@ def bench_plant_year(params=None, days: float = 365.0, work_dir: str | Path | No
     replay's cost per window to a year: the CPU per window in each quarter of the year (a cost that
     grew with the history behind a window would show here) and over the whole year, and where it
     goes (``parts``: ``edge.benchparts.PartTimer`` around the replay)."""
+    from edge.benchparts import PartTimer
     from edge.io.history import read_history
     from edge.plantfile import load_plant
     from model.analysis.replay import ReplaySettings, replay
-
-    from edge.benchparts import PartTimer
     work = Path(work_dir) if work_dir else ROOT / "var" / "bench-fleet"
     out: dict = {"targets": {"plant_years_100_on_16_workers_min": TARGETS["plant_years_100_on_16_workers_min"]},
                  "days": days, "load_average_at_start": list(os.getloadavg())}

@@ -12,8 +12,8 @@ without a profiler:
 - pass 2's parts inside the windows' threads (``AnalysisChain.analyse`` and the advice's draft, its
   searches, trusted stretch and uncertainty draws, and the fouling calibration) in each thread's
   own CPU time (``time.thread_time``): the solver answers their requests in the main thread, so
-  these are the windows' own Python and numpy work;
-  (the dead band's draws in pass 3 are pass 3's, not counted here);
+  these are the windows' own Python and numpy work (the dead band's ``_draws_at`` in pass 3 is
+  pass 3's and not counted here);
 - derived: pass 2's lockstep (threads started, batons handed: pass 2 less its solver and its
   threads), and the rest of the replay (the measured side, the initial calibration, the results'
   tables: the replay less passes 1–3).
@@ -52,6 +52,16 @@ TIMED = (
 CLOCKS = {"process": time.process_time, "thread": time.thread_time}
 
 
+def owner_of(mod_name: str, path: str) -> tuple:
+    """(the object holding the attribute, its name) of a ``TIMED`` entry's function."""
+    import importlib
+    owner = importlib.import_module(mod_name)
+    *outer, name = path.split(".")
+    for a in outer:
+        owner = getattr(owner, a)
+    return owner, name
+
+
 class PartTimer:
     """``with PartTimer() as pt: replay(...)`` then ``pt.report(cpu_s, windows)``."""
 
@@ -64,13 +74,9 @@ class PartTimer:
         self._in_pass3 = 0      # pass 3 calls _draws_at too (the dead band): not pass 2's
 
     def __enter__(self) -> "PartTimer":
-        import importlib
         try:
             for mod_name, path, part, clock in self.timed:
-                owner = importlib.import_module(mod_name)
-                *outer, name = path.split(".")
-                for a in outer:
-                    owner = getattr(owner, a)
+                owner, name = owner_of(mod_name, path)
                 original = owner.__dict__[name]
                 self._saved.append((owner, name, original))
                 setattr(owner, name, self._wrap(original, part, CLOCKS[clock]))

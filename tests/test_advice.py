@@ -320,6 +320,25 @@ def test_a_stretch_of_exactly_the_limit_is_judged_alike_whatever_its_last_bit():
     assert 0.0 < GRID_TOL_BAR <= 1e-6     # far below anything a plant could hold
 
 
+def _refused_with_its_key(tmp_path, key: str, value, message: str) -> None:
+    """advice.<key> = value is refused by AdviceSettings with ``message``, and by load_plant with the
+    file's name before it (the line hp-edge prints when it exits 2)."""
+    import yaml
+
+    from edge.plantfile import PlantFileError, load_plant
+    from model.analysis.advice import AdviceError, AdviceSettings
+    with pytest.raises(AdviceError) as exc:
+        AdviceSettings.from_dict({key: value})
+    assert str(exc.value) == message
+    doc = yaml.safe_load((Path(__file__).resolve().parent.parent / "config" / "plant.yaml").read_text())
+    doc["advice"] = {key: value}
+    f = tmp_path / "plant.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(PlantFileError) as exc:
+        load_plant(f)
+    assert str(exc.value) == f"{f}: {message}"
+
+
 @pytest.mark.parametrize("value, message", [
     (0, "key 'advice.path_step_bar': must be >= 0.05, got 0"),
     (-1, "key 'advice.path_step_bar': expected a number >= 0, got -1"),
@@ -327,20 +346,7 @@ def test_a_stretch_of_exactly_the_limit_is_judged_alike_whatever_its_last_bit():
 def test_a_bad_path_step_is_refused_with_its_key(tmp_path, value, message):
     """A zero step would make the trusted stretch's grid endless: refused when plant.yaml is read,
     naming the file and the key (hp-edge exits 2 with this line)."""
-    import yaml
-
-    from edge.plantfile import PlantFileError, load_plant
-    from model.analysis.advice import AdviceError, AdviceSettings
-    with pytest.raises(AdviceError) as exc:
-        AdviceSettings.from_dict({"path_step_bar": value})
-    assert str(exc.value) == message
-    doc = yaml.safe_load((Path(__file__).resolve().parent.parent / "config" / "plant.yaml").read_text())
-    doc["advice"] = {"path_step_bar": value}
-    f = tmp_path / "plant.yaml"
-    f.write_text(yaml.safe_dump(doc))
-    with pytest.raises(PlantFileError) as exc:
-        load_plant(f)
-    assert str(exc.value) == f"{f}: {message}"
+    _refused_with_its_key(tmp_path, "path_step_bar", value, message)
 
 
 def test_the_shape_error_weighs_each_stage_by_its_share_of_the_work(plant):
@@ -478,18 +484,6 @@ def test_a_coverage_share_outside_zero_to_one_is_refused_with_its_key(tmp_path, 
     """min_coverage_share is a share of the window's samples (the confidence rule and, since stop
     52, the trusted path's): a value above 1 would make both silently mean 'all of them'; refused
     when plant.yaml is read, naming the file and the key."""
-    import yaml
-
-    from edge.plantfile import PlantFileError, load_plant
-    from model.analysis.advice import AdviceError, AdviceSettings
-    with pytest.raises(AdviceError) as exc:
-        AdviceSettings.from_dict({"min_coverage_share": value})
-    assert str(exc.value) == message
-    doc = yaml.safe_load((Path(__file__).resolve().parent.parent / "config" / "plant.yaml").read_text())
-    doc["advice"] = {"min_coverage_share": value}
-    f = tmp_path / "plant.yaml"
-    f.write_text(yaml.safe_dump(doc))
-    with pytest.raises(PlantFileError) as exc:
-        load_plant(f)
-    assert str(exc.value) == f"{f}: {message}"
+    from model.analysis.advice import AdviceSettings
+    _refused_with_its_key(tmp_path, "min_coverage_share", value, message)
     assert AdviceSettings.from_dict({"min_coverage_share": 1}).min_coverage_share == 1.0

@@ -1,12 +1,11 @@
 """``edge.benchparts.PartTimer``: where a replay's CPU goes (the plant-year bench's ``parts``)."""
 from __future__ import annotations
 
-import importlib
 import time
 
 import pytest
 
-from edge.benchparts import TIMED, PartTimer
+from edge.benchparts import TIMED, PartTimer, owner_of
 from model.analysis.replay import replay
 from simulator.synthetic import Noise, Operation, Truth, generate
 
@@ -19,10 +18,7 @@ CLOCK_SLACK_S = 0.05
 def _originals():
     out = {}
     for mod, path, _, _ in TIMED:
-        owner = importlib.import_module(mod)
-        *outer, name = path.split(".")
-        for a in outer:
-            owner = getattr(owner, a)
+        owner, name = owner_of(mod, path)
         out[(mod, path)] = owner.__dict__[name]
     return out
 

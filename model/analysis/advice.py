@@ -760,7 +760,36 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
     this window's conditions), the expected changes at the recommendation and the confidence.
     Model runs happen here only when the dead band keeps the previous recommendation, and never in
     a window whose draft gave reasons for low confidence (its recommendation is the actual set
-    point, its uncertainty the model optimum's)."""
+    point, its uncertainty the model optimum's). ``finish_settling(decide_settling(...))``."""
+    return finish_settling(decide_settling(draft, previous_rec_barg))
+
+
+@dataclass
+class Settling:
+    """The dead band's decision on one window (``decide_settling``), before the figures at the
+    recommendation (``finish_settling``)."""
+    draft: AdviceDraft
+    sp_rec: float                    # the recommendation [bar(g)]: the model optimum, or the
+                                     # previous recommendation kept
+    note: str
+    held: bool                       # the previous recommendation kept
+    evaluations: int
+    ev: Evaluator | None             # the representative rows' evaluator of the dead band's test
+
+    @property
+    def runs(self) -> bool:
+        """``finish_settling`` runs the model (the whole window and the uncertainty draws at a kept
+        recommendation); else it only combines the draft's figures. A window whose settling runs
+        the model keeps the previous recommendation: whatever its figures, it does not change the
+        recommendation the next window's dead band holds to (confident, it recommends that one
+        again; not confident, it leaves it as it was)."""
+        return self.sp_rec != self.draft.sp_opt
+
+
+def decide_settling(draft: AdviceDraft, previous_rec_barg: float | None = None) -> Settling:
+    """The dead band of ``settle_advice``: keep ``previous_rec_barg`` or take the model optimum
+    (one model run on the representative rows at the previous recommendation, when it is in
+    range and the draft gave no reasons for low confidence)."""
     d, s = draft, draft.settings
     if d.reasons:
         # the window cannot be confident: its recommendation is the actual set point whatever the
@@ -789,6 +818,17 @@ def settle_advice(draft: AdviceDraft, previous_rec_barg: float | None = None) ->
                 sp_rec, held = previous_rec_barg, True
                 note = f"kept the previous recommendation (the optimum gains {gain:.3f} % more)"
         evaluations += ev.evals
+    return Settling(d, sp_rec, note, held, evaluations, ev)
+
+
+def finish_settling(settling: Settling) -> AdviceResult:
+    """``settle_advice`` after the dead band's decision: the expected changes at the recommendation
+    (a kept one: the whole window and the uncertainty draws run there, ``Settling.runs``) and the
+    confidence."""
+    st = settling
+    d, s = st.draft, st.draft.settings
+    sp_opt, amb = d.sp_opt, d.amb
+    sp_rec, note, held, evaluations, ev = st.sp_rec, st.note, st.held, st.evaluations, st.ev
     ref, opt = d.ref, d.opt
     if sp_rec == sp_opt:
         rec, sd = opt, d.sd_opt

@@ -136,7 +136,7 @@ def run_family(family: str, days: float = DAYS, schedule=SCHEDULE, params=None, 
     m = metrics(j, res.windows)
     m.update({"family": family, "days": days, "seconds_export": round(t1 - t0, 1),
               "seconds_replay": round(t2 - t1, 1), "seconds_judge": round(t3 - t2, 1)})
-    return {"metrics": m, "judged": j, "windows": res.windows}
+    return {"metrics": m, "judged": j, "windows": res.windows, "history": hist}
 
 
 def bench_advice(families=FAMILIES, days: float = DAYS) -> dict:

@@ -12,7 +12,8 @@ without a profiler:
 - pass 2's parts inside the windows' threads (``AnalysisChain.analyse`` and the advice's draft, its
   searches, trusted stretch and uncertainty draws, and the fouling calibration) in each thread's
   own CPU time (``time.thread_time``): the solver answers their requests in the main thread, so
-  these are the windows' own Python and numpy work (the dead band's ``_draws_at`` in pass 3 is
+  these are the windows' own Python and numpy work (the dead band's ``_draws_at`` and solver
+  calls in pass 3, whose kept recommendations run in a lockstep of their own since stop 54, are
   pass 3's and not counted here);
 - derived: pass 2's lockstep (threads started, batons handed: pass 2 less its solver and its
   threads), and the rest of the replay (the measured side, the initial calibration, the results'
@@ -32,8 +33,8 @@ from collections import Counter
 
 # (module, attribute path, part, clock): the function ``attribute path`` of ``module`` is timed as
 # ``part`` with the process's ("process") or the calling thread's ("thread") CPU clock. The module
-# attribute is the one the caller looks up (chain.py imports draft_advice and settle_advice by
-# name, advice.py searches), so that the wrapper is the function called.
+# attribute is the one the caller looks up (chain.py imports draft_advice by name and calls its own
+# settle_now and settle_kept, advice.py searches), so that the wrapper is the function called.
 TIMED = (
     ("model.analysis.chain", "AnalysisChain.prepare", "pass1_prepare", "process"),
     ("model.analysis.replay", "_analyse_tasks", "pass2", "process"),
@@ -44,9 +45,10 @@ TIMED = (
     ("model.analysis.advice", "searches", "pass2_windows_advice_searches", "thread"),
     ("model.analysis.advice", "trusted_stretch", "pass2_windows_advice_trusted_stretch", "thread"),
     ("model.analysis.advice", "_draws_at", "pass2_windows_advice_draws", "thread"),
-    ("model.analysis.chain", "AnalysisChain.finish", "pass3", "process"),
+    ("model.analysis.chain", "AnalysisChain.finish_chunk", "pass3", "process"),
     ("model.analysis.chain", "AnalysisChain._forecast", "pass3_forecast", "process"),
-    ("model.analysis.chain", "settle_advice", "pass3_dead_band", "process"),
+    ("model.analysis.chain", "settle_now", "pass3_dead_band", "process"),
+    ("model.analysis.chain", "settle_kept", "pass3_dead_band", "process"),
     ("model.analysis.surrogate_tracker", "SurrogateTracker.window", "pass3_surrogate_tracker", "process"),
 )
 CLOCKS = {"process": time.process_time, "thread": time.thread_time}
@@ -95,7 +97,7 @@ class PartTimer:
 
     def _wrap(self, f, part: str, clock):
         cpu, calls, lock = self.cpu, self.calls, self._lock
-        is_pass3, pass2 = part == "pass3", part.startswith("pass2_windows")
+        is_pass3, pass2 = part == "pass3", part.startswith("pass2_")
 
         @functools.wraps(f)
         def timed(*a, **k):

@@ -68,6 +68,39 @@ def test_regret_targets_hold_on_a_plant_with_other_compressor_curves(judged):
     assert held >= 1
 
 
+def test_the_kept_recommendations_model_runs_together_change_nothing(judged, monkeypatch):
+    """Pass 3 runs the dead band's model runs at kept recommendations of a chunk's windows together
+    (``AnalysisChain.finish_chunk``, ``settle_kept`` in lockstep); one at a time, as the gateway
+    settles a window, gives the same windows."""
+    import model.analysis.chain as chain_mod
+    from edge.plantfile import load_plant
+    from model.analysis.replay import replay
+    from model.analysis.advice import finish_settling
+    shipped = chain_mod.settle_kept
+    sizes = []
+
+    def recorded(settlings):
+        sizes.append(len(settlings))
+        return shipped(settlings)
+
+    def one_at_a_time(settlings):
+        out = []
+        for st in settlings:
+            try:
+                out.append(finish_settling(st))
+            except chain_mod._ADVICE_FAILS as exc:
+                out.append(exc)
+        return out
+    hist, params = judged["history"], load_plant()
+    monkeypatch.setattr(chain_mod, "settle_kept", recorded)
+    together = replay(hist, params).windows
+    assert max(sizes) >= 2, sizes                   # several kept windows in one chunk
+    monkeypatch.setattr(chain_mod, "settle_kept", one_at_a_time)
+    alone = replay(hist, params).windows
+    assert together.equals(alone)
+    assert together.equals(judged["windows"])
+
+
 def _commissioned(plant, hist):
     """The replay's commissioning on the first 90 usable minutes: (chain, state, processed)."""
     proc = process(hist, plant)

@@ -59,11 +59,15 @@ def test_the_part_timer_splits_a_replay_without_changing_it(plant, history):
     assert s["pass1_prepare"] + s["pass2"] + s["pass3"] <= cpu + CLOCK_SLACK_S
     assert s["rest"] == pytest.approx(cpu - s["pass1_prepare"] - s["pass2"] - s["pass3"])
     assert s["replay"] == cpu
-    # every window prepared, analysed, drafted and settled once (all of them calibrate here)
+    # every window prepared, analysed, drafted and its dead band decided once (all of them calibrate
+    # here), one chunk through pass 2 and pass 3; the kept recommendations' runs once for the chunk
     assert set(timed.windows["status"]) == {"ok"}
-    for part in ("pass1_prepare", "pass2_windows", "pass2_windows_advice_draft", "pass3", "pass3_dead_band"):
+    for part in ("pass1_prepare", "pass2_windows", "pass2_windows_advice_draft"):
         assert calls[part] == n, part
+    kept = timed.windows["advice_note"].str.startswith("kept the previous recommendation").any()
+    assert calls["pass3_dead_band"] == n + int(kept)
     assert calls["pass2"] == 1 and calls["pass2_solver"] >= 3     # one lockstep chunk, its rounds
+    assert calls["pass3"] == 1
     assert r["ms_per_window"]["replay"] == pytest.approx(1e3 * cpu / n)
     assert r["share_of_replay"]["replay"] == pytest.approx(1.0)
 
@@ -86,22 +90,25 @@ def test_a_part_that_cannot_be_found_leaves_nothing_wrapped():
     assert _originals() == before
 
 
-def test_the_dead_bands_draws_are_pass_threes_not_the_drafts():
-    """``_draws_at`` runs in the draft (pass 2) and in the dead band (pass 3): inside pass 3 the
-    pass-2 parts are not counted (they are in pass 3's time)."""
+def test_the_dead_bands_draws_and_solver_calls_are_pass_threes_not_the_drafts():
+    """``_draws_at`` and the merged solver calls run in pass 2 and in the dead band (pass 3):
+    inside pass 3 the pass-2 parts are not counted (they are in pass 3's time)."""
     import sys
     import types
     mod = types.ModuleType("benchparts_probe")
     mod.draws = lambda: sum(range(1000))
-    mod.finish = lambda: mod.draws()
+    mod.solve = lambda: sum(range(1000))
+    mod.finish = lambda: (mod.draws(), mod.solve())
     sys.modules[mod.__name__] = mod
     try:
         with PartTimer(((mod.__name__, "finish", "pass3", "process"),
-                        (mod.__name__, "draws", "pass2_windows_advice_draws", "thread"))) as pt:
+                        (mod.__name__, "draws", "pass2_windows_advice_draws", "thread"),
+                        (mod.__name__, "solve", "pass2_solver", "process"))) as pt:
             mod.draws()                 # the draft's
+            mod.solve()                 # pass 2's
             mod.finish()                # the dead band's, inside pass 3
             mod.finish()
         calls = pt.report(1.0, 1)["calls"]
-        assert calls == {"pass3": 2, "pass2_windows_advice_draws": 1}
+        assert calls == {"pass3": 2, "pass2_windows_advice_draws": 1, "pass2_solver": 1}
     finally:
         del sys.modules[mod.__name__]

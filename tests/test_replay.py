@@ -288,7 +288,8 @@ def test_plant_year_bench_runs_and_adds_up(tmp_path):
     assert out["max_rss_mb"] > 50
     parts = out["parts"]                     # where it goes (edge.benchparts; tests/test_benchparts.py)
     assert parts["cpu_s"]["replay"] == out["cpu_s"]
-    assert parts["calls"]["pass3"] == out["windows"] and parts["calls"]["pass2_windows"] == out["windows"]
+    assert parts["calls"]["pass2_windows"] == out["windows"]
+    assert parts["calls"]["pass3"] == parts["calls"]["pass2"] >= 1          # one of each per chunk
     assert 0 < parts["cpu_s"]["pass2_solver"] < parts["cpu_s"]["pass2"] < out["cpu_s"]
 
 

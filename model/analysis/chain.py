@@ -36,13 +36,16 @@ from ..measured import derived
 from ..optimize import OptimizationError, groups, representative
 from ..params import PlantParams
 from ..units import BAR, M3H
-from .advice import AdviceDraft, AdviceResult, AdviceSettings, check_rows, draft_advice, settle_advice
+from .. import lockstep
+from .advice import (AdviceDraft, AdviceResult, AdviceSettings, check_rows, decide_settling, draft_advice,
+                     finish_settling)
 from .cip import CipSettings, ForecastState, cost_levels_for, explain, forecast_window
 from .cost import CostError, LevelRuns, PriceSeries
 from .compressors import STAGES, CompressorLearner, LearningSettings, observe, preset_stages, shared_stages
 from .surrogate_tracker import SurrogateTracker, TrackerSettings, optimum_row
 
 DEFAULT_HEAT_BALANCE_LIMIT_PCT = 5.0
+_ADVICE_FAILS = (OptimizationError, ValueError, ArithmeticError)   # a window's advice fails, not the run
 LS_SATURATED_RPM = 15.0     # a measured LS speed this close to its maximum: at the limit
 
 
@@ -669,35 +672,62 @@ class AnalysisChain:
                                             X_in if adv_in is der else None)
 
     def finish(self, partial: WindowPartial, state: ChainState) -> WindowResult:
-        """Pass 3 (in window order): what depends on the windows before — the fouling forecast,
-        the cost of fouling and the CIP plan (issue 10), the dead band on the previous confident
-        recommendation, the surrogate tracker — and the state handed on."""
-        res = partial.res
-        if partial.fouling is not None:
-            state.last_fouling = partial.fouling
-        if partial.cond_factor is not None:
-            state.cond_factor = partial.cond_factor
-        # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
-        if self.s.cip.enabled and partial.cost_runs is not None:
-            self._forecast(res, partial, state)
-        if partial.draft is not None and res.ok:
-            used = partial.surrogate
-            try:
-                adv = settle_advice(partial.draft, state.last_rec_barg)
-            except (OptimizationError, ValueError, ArithmeticError) as exc:
-                res.status = f"failed: set-point optimization: {exc}"
-                return res
-            self._advice_figures(res, adv)
-            res.optimizer = (f"surrogate:{used['form']}" if adv.optimizer == "surrogate" and used
-                             else "search")
-            if used is not None:
-                res.detail["surrogate"] = used
-            if adv.confident:
-                state.last_rec_barg = adv.p_m_sp_rec_barg
-            if state.tracker is not None and partial.ev_rows is not None:
-                state.tracker.window(partial.ev_rows, partial.ev_w, partial.adaptive, res.t_end,
-                                     own=partial.tracker_row)
-        return res
+        """Pass 3 of one window (``finish_chunk`` of it alone)."""
+        return self.finish_chunk([partial], state)[0]
+
+    def finish_chunk(self, partials: list, state: ChainState, before=None) -> list:
+        """Pass 3 (in window order) of consecutive windows: what depends on the windows before — the
+        fouling forecast, the cost of fouling and the CIP plan (issue 10), the dead band on the
+        previous confident recommendation, the surrogate tracker — and the state handed on.
+        ``before(partial)`` is called before each window's pass 3 (replay: the CIPs that ended
+        before it). Returns the windows' results.
+
+        The dead band's model runs at a kept recommendation (``Settling.runs``: the whole window
+        and the uncertainty draws there; until stop 54 ~3 of the dead band's ~4 ms a window of a
+        plant-year, one solver call after the other) wait until the chunk's windows are through
+        the rest and then run in lockstep (``model.lockstep``: their solver calls answered
+        together). No later window's pass 3 depends on them: such a window keeps the
+        recommendation the next window's dead band holds to whatever its figures, and a failure
+        there (the kept set point does not solve every sample) fails only its own result. The
+        advice's figures and the surrogate tracker then take the windows in order, as one window
+        at a time would (``tests/test_advice.py``: the same windows as one at a time)."""
+        done = []
+        for partial in partials:
+            if before is not None:
+                before(partial)
+            res = partial.res
+            if partial.fouling is not None:
+                state.last_fouling = partial.fouling
+            if partial.cond_factor is not None:
+                state.cond_factor = partial.cond_factor
+            # ---- issue 10: forecast since the last reset, cost of fouling, CIP plan
+            if self.s.cip.enabled and partial.cost_runs is not None:
+                self._forecast(res, partial, state)
+            settling = adv = None
+            if partial.draft is not None and res.ok:
+                settling, adv = settle_now(partial.draft, state.last_rec_barg)
+                if isinstance(adv, AdviceResult) and adv.confident:
+                    state.last_rec_barg = adv.p_m_sp_rec_barg
+            done.append([partial, settling, adv])
+        waiting = [d for d in done if d[2] is None and d[1] is not None]
+        if waiting:
+            for d, a in zip(waiting, settle_kept([d[1] for d in waiting])):
+                d[2] = a
+        for partial, settling, adv in done:
+            res = partial.res
+            if isinstance(adv, Exception):
+                res.status = f"failed: set-point optimization: {adv}"
+            elif adv is not None:
+                used = partial.surrogate
+                self._advice_figures(res, adv)
+                res.optimizer = (f"surrogate:{used['form']}" if adv.optimizer == "surrogate" and used
+                                 else "search")
+                if used is not None:
+                    res.detail["surrogate"] = used
+                if state.tracker is not None and partial.ev_rows is not None:
+                    state.tracker.window(partial.ev_rows, partial.ev_w, partial.adaptive, res.t_end,
+                                         own=partial.tracker_row)
+        return [partial.res for partial, _, _ in done]
 
     # ---- issue 10 ------------------------------------------------------------------------------
     def _cost_runs(self, res: WindowResult, cost_in: pd.DataFrame, adaptive: PlantParams,
@@ -851,6 +881,39 @@ class AnalysisChain:
         res.advice_confident = adv.confident
         res.advice_note = adv.note
         res.detail["advice"] = _plain(adv)
+
+
+def settle_now(draft: AdviceDraft, previous_rec_barg: float | None) -> tuple:
+    """(the dead band's ``Settling``, the ``AdviceResult`` — or the exception that failed the
+    window's advice — where it needs no model run, else None: ``settle_kept``)."""
+    try:
+        st = decide_settling(draft, previous_rec_barg)
+        return st, (None if st.runs else finish_settling(st))
+    except _ADVICE_FAILS as exc:
+        return None, exc
+
+
+def settle_kept(settlings: list) -> list:
+    """``finish_settling`` of each (their model runs in lockstep when there are several): the
+    ``AdviceResult`` or the exception that failed the window's advice, in order; any other
+    exception is raised."""
+    if len(settlings) > 1:
+        got = lockstep.run([(lambda st=st: finish_settling(st)) for st in settlings])
+    else:
+        got = []
+        for st in settlings:
+            try:
+                got.append(finish_settling(st))
+            except _ADVICE_FAILS as exc:
+                got.append(exc)
+    out = []
+    for a in got:
+        if isinstance(a, lockstep.Failed):
+            if not isinstance(a.exc, _ADVICE_FAILS):
+                raise a.exc
+            a = a.exc
+        out.append(a)
+    return out
 
 
 def _plain(obj):

@@ -505,24 +505,28 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
                 yield chain.prepare(history.iloc[pos].assign(timestamp=ts[pos]), state, samples=True,
                                     pre=(der.iloc[rows].reset_index(drop=True), *stages))
 
-    for n_done, partial in enumerate(run_windows(chain, tasks(), executor,
-                                                 lockstep_windows=s.lockstep_windows), start=1):
+    def cips_before(partial) -> None:
         start = partial.res.window_start
         while pending and start and pending[0]["end"] <= pd.Timestamp(start):
             c_ = pending.pop(0)         # the forecast restarts (pass 3's state; segments are pass 1's)
             chain.cip(state, c_["start"], c_["end"], c_["detected_by"], segment=False)
-        res = chain.finish(partial, state)          # pass 3, in window order
-        if res.ok and "cip" in res.detail:
-            when = res.detail["cip"]["text"]
-        if not res.ok:
-            key = res.status.split(":")[0] + ": " + res.status.split(":")[1].strip() if ":" in res.status \
-                else res.status
-            skipped[key] = skipped.get(key, 0) + 1
-        rows.append(res.row())
-        if partial.samples is not None:
-            sample_parts.append(partial.samples)
-        if progress is not None:
-            progress(n_done, len(plan))
+
+    n_done = 0
+    for chunk in run_windows(chain, tasks(), executor, lockstep_windows=s.lockstep_windows, chunks=True):
+        # pass 3, in window order (a chunk's dead-band runs together: AnalysisChain.finish_chunk)
+        for partial, res in zip(chunk, chain.finish_chunk(chunk, state, before=cips_before)):
+            if res.ok and "cip" in res.detail:
+                when = res.detail["cip"]["text"]
+            if not res.ok:
+                key = res.status.split(":")[0] + ": " + res.status.split(":")[1].strip() if ":" in res.status \
+                    else res.status
+                skipped[key] = skipped.get(key, 0) + 1
+            rows.append(res.row())
+            if partial.samples is not None:
+                sample_parts.append(partial.samples)
+            n_done += 1
+            if progress is not None:
+                progress(n_done, len(plan))
     windows = pd.DataFrame(rows, columns=list(WINDOW_COLUMNS))
     cip_rows = _cip_table(cips, windows, s.cip_windows)
     samples = _all_samples(history, ts, processed, sample_parts)
@@ -750,8 +754,9 @@ LOCKSTEP_WINDOWS = ReplaySettings.lockstep_windows   # run_windows' default chun
 
 
 def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None,
-                lockstep_windows: int | None = None):
-    """Yield each task's ``chain.analyse(task)`` in the tasks' order.
+                lockstep_windows: int | None = None, chunks: bool = False):
+    """Yield each task's ``chain.analyse(task)`` in the tasks' order (``chunks``: one list of them
+    per chunk below).
 
     The tasks are taken in chunks of ``lockstep_windows`` (default LOCKSTEP_WINDOWS) consecutive
     windows whose pass 2 runs in lockstep (``model.lockstep``: each solver step of the chunk's
@@ -763,10 +768,19 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
     at most ``max_pending`` (default MAX_PENDING) windows' worth in flight (at least two chunks).
     With ``lockstep_windows`` 1 and no executor, each window is analysed right after its pass 1
     (the gateway's order, no pickling). Pass 2 depends on nothing but its task."""
+    for part in _run_chunks(chain, tasks, executor, max_pending, lockstep_windows):
+        if chunks:
+            yield part
+        else:
+            yield from part
+
+
+def _run_chunks(chain: AnalysisChain, tasks, executor, max_pending, lockstep_windows):
+    """``run_windows`` by chunks: a list of the partials of each chunk, in order."""
     k = max(1, int(lockstep_windows or LOCKSTEP_WINDOWS))
     if executor is None and k == 1:
         for t in tasks:
-            yield chain.analyse(t)
+            yield [chain.analyse(t)]
         return
 
     def chunks(freeze):
@@ -781,7 +795,7 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
 
     if executor is None:
         for part in chunks(_snapshot):
-            yield from _analyse_tasks(chain, part)
+            yield _analyse_tasks(chain, part)
         return
     chain_blob = pickle.dumps(chain, protocol=pickle.HIGHEST_PROTOCOL)
     max_chunks = max(2, int(max_pending or MAX_PENDING) // k)
@@ -789,7 +803,6 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
     for blobs in chunks(lambda t: pickle.dumps(t, protocol=pickle.HIGHEST_PROTOCOL)):
         pending.append(executor.submit(_analyse_chunk_pickled, chain_blob, blobs))
         while len(pending) >= max_chunks:
-            yield from pending.popleft().result()
+            yield pending.popleft().result()
     while pending:
-        yield from pending.popleft().result()
-
+        yield pending.popleft().result()

@@ -512,7 +512,7 @@ def _replay(history, params, settings, initial_window, processed, progress, chai
             chain.cip(state, c_["start"], c_["end"], c_["detected_by"], segment=False)
 
     n_done = 0
-    for chunk in run_windows(chain, tasks(), executor, lockstep_windows=s.lockstep_windows, chunks=True):
+    for chunk in run_windows(chain, tasks(), executor, lockstep_windows=s.lockstep_windows):
         # pass 3, in window order (a chunk's dead-band runs together: AnalysisChain.finish_chunk)
         for partial, res in zip(chunk, chain.finish_chunk(chunk, state, before=cips_before)):
             if res.ok and "cip" in res.detail:
@@ -754,9 +754,9 @@ LOCKSTEP_WINDOWS = ReplaySettings.lockstep_windows   # run_windows' default chun
 
 
 def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | None = None,
-                lockstep_windows: int | None = None, chunks: bool = False):
-    """Yield each task's ``chain.analyse(task)`` in the tasks' order (``chunks``: one list of them
-    per chunk below).
+                lockstep_windows: int | None = None):
+    """Yield the tasks' ``chain.analyse(task)`` in the tasks' order, one list per chunk (pass 3
+    takes a chunk at a time: ``AnalysisChain.finish_chunk``).
 
     The tasks are taken in chunks of ``lockstep_windows`` (default LOCKSTEP_WINDOWS) consecutive
     windows whose pass 2 runs in lockstep (``model.lockstep``: each solver step of the chunk's
@@ -768,15 +768,6 @@ def run_windows(chain: AnalysisChain, tasks, executor=None, max_pending: int | N
     at most ``max_pending`` (default MAX_PENDING) windows' worth in flight (at least two chunks).
     With ``lockstep_windows`` 1 and no executor, each window is analysed right after its pass 1
     (the gateway's order, no pickling). Pass 2 depends on nothing but its task."""
-    for part in _run_chunks(chain, tasks, executor, max_pending, lockstep_windows):
-        if chunks:
-            yield part
-        else:
-            yield from part
-
-
-def _run_chunks(chain: AnalysisChain, tasks, executor, max_pending, lockstep_windows):
-    """``run_windows`` by chunks: a list of the partials of each chunk, in order."""
     k = max(1, int(lockstep_windows or LOCKSTEP_WINDOWS))
     if executor is None and k == 1:
         for t in tasks:

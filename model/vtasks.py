@@ -9,6 +9,8 @@ of evaluations is unchanged by the batching: the tasks only overlap where their 
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from .vflowsheet import MSide
@@ -40,10 +42,17 @@ class Spawn:
         self.task = task
 
 
+#: None, or a callable handed each ``run``'s rounds when it ends: [(rows, process CPU s)] per round,
+#: rows the requests' rows summed (``edge.benchparts.PartTimer`` sets it for the plant-year bench)
+round_observer = None
+
+
 def run(*tasks) -> None:
     """Drive the tasks (generators yielding Eval and Spawn) to their end, batching their Eval
     requests per flowsheet into one evaluation per round."""
     live: list = []
+    observer = round_observer
+    rounds: list | None = [] if observer is not None else None
 
     def advance(gen, value) -> None:
         while True:
@@ -61,6 +70,8 @@ def run(*tasks) -> None:
     for t in tasks:
         advance(t, None)
     while live:
+        if rounds is not None:
+            c = time.process_time()
         batch, live[:] = list(live), []
         groups: dict = {}
         for item in batch:
@@ -70,6 +81,10 @@ def run(*tasks) -> None:
             results = _evaluate(reqs) if kind is Eval else _ls(reqs)
             for (gen, _), res in zip(items, results):
                 advance(gen, res)
+        if rounds is not None:
+            rounds.append((sum(len(req.idx) for _, req in batch), time.process_time() - c))
+    if rounds is not None:
+        observer(rounds)
 
 
 def _cuts(reqs) -> list:

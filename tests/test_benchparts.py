@@ -5,7 +5,8 @@ import time
 
 import pytest
 
-from edge.benchparts import TIMED, PartTimer, owner_of
+from edge.benchparts import TIMED, PartTimer, owner_of, split_rounds
+from model import vtasks
 from model.analysis.replay import replay
 from simulator.synthetic import Noise, Operation, Truth, generate
 
@@ -70,6 +71,14 @@ def test_the_part_timer_splits_a_replay_without_changing_it(plant, history):
     assert calls["pass3"] == 1
     assert r["ms_per_window"]["replay"] == pytest.approx(1e3 * cpu / n)
     assert r["share_of_replay"]["replay"] == pytest.approx(1.0)
+    # the solver's rounds (the initial calibration's, passes 1-3's): main rounds in every run, all
+    # of them inside the replay's CPU time, the observer taken away with the wrappers
+    sr = r["solver_rounds"]
+    assert vtasks.round_observer is None
+    assert sr["runs"] > 0 and sr["main"]["rounds"] >= sr["runs"]
+    assert sum(sr[k]["cpu_s"] for k in ("main", "tail", "head")) <= cpu + CLOCK_SLACK_S
+    assert sr["main"]["row_rounds"] > sr["tail"]["row_rounds"] >= sr["tail"]["rounds"]
+    assert sr["main"]["ms_per_window"] == pytest.approx(1e3 * sr["main"]["cpu_s"] / n)
 
 
 def test_the_part_timer_puts_the_functions_back_when_the_block_raises():
@@ -112,3 +121,54 @@ def test_the_dead_bands_draws_and_solver_calls_are_pass_threes_not_the_drafts():
         assert calls == {"pass3": 2, "pass2_windows_advice_draws": 1, "pass2_solver": 1}
     finally:
         del sys.modules[mod.__name__]
+
+
+def test_a_solver_runs_rounds_split_into_main_tail_and_head():
+    """``split_rounds``: rounds with at least a tenth of the largest round's rows are the run's
+    main rounds wherever they are; the smaller ones after the (first) largest its tail, before it
+    its head."""
+    got = split_rounds([(5, 0.5), (100, 2.0), (40, 1.0), (5, 0.25), (100, 2.0), (3, 0.125), (9, 0.0625)])
+    assert got == {"main": (3, 240, 5.0), "tail": (3, 17, 0.4375), "head": (1, 5, 0.5)}
+    assert split_rounds([]) == {"main": (0, 0, 0.0), "tail": (0, 0, 0.0), "head": (0, 0, 0.0)}
+
+
+class _Sheet:
+    """A flowsheet stand-in for ``vtasks.run``: an evaluation answers each row with its T_m."""
+
+    def evaluate(self, idx, T_m, T_c, ms=None, full=False):
+        return {"T_m": T_m}
+
+
+def test_the_solver_hands_each_runs_rounds_to_the_observer_and_part_timer_sums_them():
+    """``vtasks.round_observer`` gets a run's rounds (rows per round: every live task's request
+    together) when the run ends; the part timer sets it for its block, sums the kinds and puts the
+    one before it back."""
+    import numpy as np
+    fs = _Sheet()
+
+    def task(rows: int, steps: int):
+        for _ in range(steps):
+            got = yield vtasks.Eval(fs, np.arange(rows), np.full(rows, 300.0), np.full(rows, 320.0))
+            assert len(got["T_m"]) == rows
+
+    seen = []
+    vtasks.round_observer = seen.append
+    try:
+        vtasks.run(task(100, 1), task(5, 3))
+    finally:
+        vtasks.round_observer = None
+    assert [r for r, _ in seen[0]] == [105, 5, 5] and all(c >= 0 for _, c in seen[0])
+    before = lambda rounds: None                     # noqa: E731 - another observer, kept
+    vtasks.round_observer = before
+    try:
+        with PartTimer(()) as pt:
+            vtasks.run(task(100, 1), task(5, 3))
+            vtasks.run(task(20, 2))
+        assert vtasks.round_observer is before
+    finally:
+        vtasks.round_observer = None
+    sr = pt.report(1.0, 1)["solver_rounds"]
+    assert sr["runs"] == 2
+    assert (sr["main"]["rounds"], sr["main"]["row_rounds"]) == (3, 145)
+    assert (sr["tail"]["rounds"], sr["tail"]["row_rounds"]) == (2, 10)
+    assert (sr["head"]["rounds"], sr["head"]["row_rounds"]) == (0, 0)

@@ -284,12 +284,38 @@ def test_flowsheet_with_the_kernels_solves_to_the_bit(plant, kernel, monkeypatch
     assert got["status"].eq("ok").sum() > len(df) // 3 and got["status"].ne("ok").sum() > len(df) // 3
 
 
+def test_forecast_least_squares_equal_numpy_to_the_bit(kernel):
+    """``forecast._ls_many`` (a0, r0, ssr for many k) with and without the kernel: estimates from 1 to
+    2,000 (numpy's pairwise sums below 8, up to 128 and split in halves beyond), with and without
+    the prior's pseudo-observation, grids with k = 0 and single ks; equal to the bit, and each k's
+    numbers the same whichever other ks share its call."""
+    from model.analysis.forecast import _ls_many
+    rng = np.random.default_rng(17)
+    for trial, n in enumerate((1, 2, 7, 8, 9, 24, 127, 128, 129, 130, 300, 777, 2000)):
+        t = np.sort(rng.uniform(0.0, 60.0, n))
+        y = 0.05 + 0.01 * t * np.exp(-t / 40.0) + rng.normal(0.0, 0.004, n)
+        sw = 1.0 / rng.uniform(0.002, 0.02, n)
+        ks = np.concatenate([[0.0], np.geomspace(1e-4, 3.0, 60)])
+        for prior in (None, (float(rng.uniform(1.0, 300.0)), float(rng.uniform(0.0, 0.4)))):
+            ref, got = _both(lambda: _ls_many(ks, t, y, sw, prior))
+            _equal(ref, got)
+            assert np.isfinite(got[2]).all() and (got[2] >= 0.0).all()
+            one = [_ls_many([k], t, y, sw, prior) for k in ks[::7]]
+            for j, (a, r, ssr) in enumerate(one):
+                assert (a[0], r[0], ssr[0]) == (got[0][7 * j], got[1][7 * j], got[2][7 * j])
+    # above: unconstrained solutions, both edges, and (one estimate) singular systems
+    flat = np.full(5, 0.3)
+    ref, got = _both(lambda: _ls_many([0.0, 0.5], np.arange(5.0), flat, np.ones(5)))
+    _equal(ref, got)
+    assert got[0][0] == pytest.approx(0.3, rel=1e-12) and got[2][0] == pytest.approx(0.0, abs=1e-24)
+
+
 def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
     """numba installed but a kernel failing to compile: a RuntimeWarning naming the failure, every
     kernel off (numpy's numbers), and no second attempt in the process."""
     import numba
     keep = {k: getattr(speedkernel, k) for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE",
-                                                 "_SC_POST", "_SATF", "_VAP", "_RECT", "_TRIED")}
+                                                 "_SC_POST", "_SATF", "_VAP", "_RECT", "_LS", "_TRIED")}
 
     def broken(*a, **k):
         raise TypeError("no LLVM here")
@@ -303,6 +329,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
             assert speedkernel.enable() is False
         assert not speedkernel.active() and speedkernel._SC_PRE is None and speedkernel._SAT is None
         assert speedkernel._SATF is None and speedkernel._VAP is None and speedkernel._RECT is None
+        assert speedkernel._LS is None
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("error")

@@ -61,6 +61,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
+from . import speedkernel as _kernels
+
 LAWS = ("kern_seaton", "linear")
 DEFAULT_LEVEL = 0.90
 DEFAULT_HORIZON_DAYS = 7.0
@@ -445,15 +447,23 @@ def _ls_many(ks, t, y, sw, prior_row=None):
     """Non-negative weighted least squares of y ~ a0 + r0 phi_k(t) for each k in ks (closed form: the
     unconstrained 2x2 solution, else the better of the two one-parameter edges), with the prior's
     y_inf pseudo-observation where k > 0 (prior_row = (weight, y_inf - floor)).
-    Returns arrays (a0, r0, ssr of the data rows)."""
+    Returns arrays (a0, r0, ssr of the data rows).
+
+    The sums over the estimates are row sums (numpy's pairwise summation; not a matrix product,
+    whose order is the BLAS library's), so each k's numbers do not depend on the other ks and the
+    compiled kernel (``speedkernel.ls_rows``, ~5x quicker at the forecast's sizes) gives them to
+    the bit."""
     ks = np.atleast_1d(np.asarray(ks, dtype=float))
     P = phi_many(t, ks)                                         # (K, n)
+    if _kernels._KERNEL is not None:       # (the kernels' switch, as everywhere)
+        return _kernels.ls_rows(P, sw, y, ks, prior_row)
     w2 = sw * sw
+    wy = w2 * y
     G00 = np.full(len(ks), w2.sum())
-    G01 = P @ w2
-    G11 = (P * P) @ w2
-    h0 = np.full(len(ks), w2 @ y)
-    h1 = P @ (w2 * y)
+    G01 = (P * w2).sum(axis=1)
+    G11 = ((P * P) * w2).sum(axis=1)
+    h0 = np.full(len(ks), wy.sum())
+    h1 = (P * wy).sum(axis=1)
     if prior_row is not None:
         wp, yp = prior_row
         inv_k = np.where(ks > 0, 1.0 / np.where(ks > 0, ks, 1.0), 0.0)
@@ -475,7 +485,7 @@ def _ls_many(ks, t, y, sw, prior_row=None):
     a = np.where(ok_u, a_u, np.where(use_edge_a, a_e, 0.0))
     r = np.where(ok_u, r_u, np.where(use_edge_a, 0.0, r_e))
     res = sw[None, :] * (y[None, :] - a[:, None] - r[:, None] * P)
-    return a, r, np.einsum("ij,ij->i", res, res)
+    return a, r, (res * res).sum(axis=1)
 
 
 def _ls_at(k: float, t, y, sw, prior_row=None):

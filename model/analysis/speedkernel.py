@@ -16,7 +16,10 @@
 - the compressor learner's distance to its covered bins (``CompressorLearner.coverage_distance``:
   the nearest rectangle per point, without the (points, bins) arrays);
 - the subcooler's Newton step (``Flowsheet._subcooler``) in two halves around numpy's ``exp`` of
-  the effectiveness (``subcooler``: the same iteration, the same exits).
+  the effectiveness (``subcooler``: the same iteration, the same exits);
+- the fouling forecast's least squares for many k (``forecast._ls_many`` after numpy's ``expm1``:
+  ``ls_rows``), whose sums over the estimates are numpy's pairwise sums (``_pw``, the order of
+  numpy's ``add.reduce`` of a contiguous row).
 
 Each computes every row with the same floating-point operations in the same order as the numpy
 version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``; ``_Tables.value_v``;
@@ -43,6 +46,7 @@ _SAT = _DER = None      # the compiled saturation table and isentropic / T-from-
 _SC_PRE = _SC_POST = None   # the subcooler's Newton step, before and after its exp
 _SATF = _VAP = None     # the saturation table with its range check and the vapour table
 _RECT = None            # the learner's distance to its covered bins
+_LS = None              # the forecast's least squares for many k
 _TRIED = False
 
 
@@ -427,10 +431,130 @@ def _sc_post(x, C_min, Cr, NTU, dT, d, d_hi, h_T, g, m, dq, cp, C, step, finish)
     return 2 if stop else 0
 
 
+def _pw_leaf(a, i0, n):
+    """numpy's pairwise sum of a[i0:i0 + n] for n <= 128 (``_pw``)."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i0 + i]
+        return res
+    r0, r1, r2, r3 = a[i0], a[i0 + 1], a[i0 + 2], a[i0 + 3]
+    r4, r5, r6, r7 = a[i0 + 4], a[i0 + 5], a[i0 + 6], a[i0 + 7]
+    i = 8
+    m = n - n % 8
+    while i < m:
+        j = i0 + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i0 + i]
+        i += 1
+    return res
+
+
+def _pw(a, i0, n):
+    """numpy's sum of a[i0:i0 + n] (float64, contiguous): ``add.reduce``'s pairwise summation
+    (``pairwise_sum`` in numpy's loops_utils.h: below 8 terms in order; up to 128 in eight running
+    sums by position modulo 8, combined as ((0+1)+(2+3))+((4+5)+(6+7)), then the rest in order;
+    beyond 128 the sum of the two halves, split at a multiple of 8). The halves' recursion runs on
+    an explicit stack: numba's cache cannot load a recursive function."""
+    if n <= 128:
+        return _pw_leaf(a, i0, n)
+    start = np.empty(64, np.int64)      # the nodes on the path from the root: start, length,
+    size = np.empty(64, np.int64)       # state (0 new, 1 its left half pending, 2 its right half
+    state = np.zeros(64, np.int64)      # pending with the left half's sum in ``left``)
+    left = np.empty(64)
+    top = 0
+    start[0], size[0] = i0, n
+    while True:
+        m = size[top]
+        if m > 128:                      # an inner node: its left half first
+            state[top] = 1
+            h = m // 2
+            h -= h % 8
+            start[top + 1], size[top + 1], state[top + 1] = start[top], h, 0
+            top += 1
+            continue
+        v = _pw_leaf(a, start[top], m)
+        top -= 1
+        while top >= 0 and state[top] == 2:     # right halves done: their parents' sums
+            v = left[top] + v
+            top -= 1
+        if top < 0:
+            return v
+        left[top], state[top] = v, 2            # a left half done: its right half next
+        h = size[top] // 2
+        h -= h % 8
+        start[top + 1], size[top + 1], state[top + 1] = start[top] + h, size[top] - h, 0
+        top += 1
+
+
+def _ls_rows(P, sw, y, ks, has_prior, wp, yp, a_out, r_out, ssr_out):
+    """``forecast._ls_many`` after its ``phi_many`` (P (K, n)): per k the normal equations' sums, the
+    non-negative solution and the data rows' sum of squares, element by element as numpy's version
+    (its row sums ``_pw``)."""
+    K, n = P.shape
+    w2 = np.empty(n)
+    wy = np.empty(n)
+    buf = np.empty(n)
+    for i in range(n):
+        w2[i] = sw[i] * sw[i]
+        wy[i] = w2[i] * y[i]
+    g00 = _pw(w2, 0, n)
+    gh0 = _pw(wy, 0, n)
+    for k in range(K):
+        for i in range(n):
+            buf[i] = P[k, i] * w2[i]
+        G01 = _pw(buf, 0, n)
+        for i in range(n):
+            buf[i] = (P[k, i] * P[k, i]) * w2[i]
+        G11 = _pw(buf, 0, n)
+        for i in range(n):
+            buf[i] = P[k, i] * wy[i]
+        h1 = _pw(buf, 0, n)
+        G00 = g00
+        h0 = gh0
+        if has_prior:
+            inv_k = 1.0 / ks[k] if ks[k] > 0 else 0.0
+            wp2 = wp * wp if ks[k] > 0 else 0.0
+            G00 = G00 + wp2
+            G01 = G01 + wp2 * inv_k
+            G11 = G11 + wp2 * inv_k ** 2
+            h0 = h0 + wp2 * yp
+            h1 = h1 + wp2 * yp * inv_k
+        det = G00 * G11 - G01 * G01
+        a_u = (G11 * h0 - G01 * h1) / det
+        r_u = (G00 * h1 - G01 * h0) / det
+        a_e = _nmax(h0 / G00, 0.0)
+        r_e = _nmax(h1 / G11, 0.0) if G11 > 0 else 0.0
+        ok_u = math.isfinite(a_u) and math.isfinite(r_u) and a_u >= 0 and r_u >= 0
+        if ok_u:
+            a, r = a_u, r_u
+        elif (a_e * a_e * G00 + 2 * a_e * 0.0 * G01 + 0.0 * 0.0 * G11 - 2 * (a_e * h0 + 0.0 * h1)
+              <= 0.0 * 0.0 * G00 + 2 * 0.0 * r_e * G01 + r_e * r_e * G11 - 2 * (0.0 * h0 + r_e * h1)):
+            a, r = a_e, 0.0
+        else:
+            a, r = 0.0, r_e
+        for i in range(n):
+            v = sw[i] * (y[i] - a - r * P[k, i])
+            buf[i] = v * v
+        a_out[k] = a
+        r_out[k] = r
+        ssr_out[k] = _pw(buf, 0, n)
+
+
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _RECT, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _RECT, _LS, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -454,9 +578,13 @@ def enable() -> bool:
         _SATF = jit(type(_sat_full_rows)(_sat_full_rows.__code__, glb, _sat_full_rows.__name__))
         _VAP = jit(type(_vap_rows)(_vap_rows.__code__, glb, _vap_rows.__name__))
         _RECT = jit(type(_rect_min_rows)(_rect_min_rows.__code__, glb, _rect_min_rows.__name__))
+        glb = dict(_ls_rows.__globals__, _nmax=nmax)
+        glb["_pw_leaf"] = jit(_pw_leaf)
+        glb["_pw"] = jit(type(_pw)(_pw.__code__, glb, _pw.__name__))
+        _LS = jit(type(_ls_rows)(_ls_rows.__code__, glb, _ls_rows.__name__))
         _probe()
     except Exception as exc:     # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = _RECT = None
+        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = _RECT = _LS = None
         # the same numbers either way, but a replay several times slower: say so once
         warnings.warn(f"numba {getattr(numba, '__version__', '?')} is installed but hp-edge's compiled kernels "
                       f"did not compile ({type(exc).__name__}: {exc}); replays run on numpy: the same "
@@ -485,6 +613,8 @@ def _probe() -> None:
     sat_full(np.zeros((2, 4, 5)), z1, 0.0, 1.0, 0, 0.0, 1.0)
     vapour(np.zeros((4, 4, 4, 3)), z1, z1, z1, 0.0, 1.0, 0, 2, 0.0, 1.0, 0, 0.0, 1.0, 1.0)
     rect_min(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(2), np.ones(2))
+    ls_rows(np.ones((1, 2)), np.ones(2), np.ones(2), np.ones(1), None)
+    ls_rows(np.ones((1, 2)), np.ones(2), np.ones(2), np.ones(1), (1.0, 1.0))
     subcooler(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), 0.0, 2.0, -2.0, z1 + 0.25,
               z1 + 1.0, z1 + 2.0, z1, z1 + 1.0, z1 + 1.0, z1 + 2.0, z1 + 10.0, 30, 1e-6)
 
@@ -625,3 +755,15 @@ def subcooler(LC, base, tx, d0, inv_dd, dscale, d, num, h_g_m, h_f_c, C_w, UA, d
         if code == 2:
             break
     return False, d, step, h, h_T
+
+
+def ls_rows(P, sw, y, ks, prior_row) -> tuple:
+    """``forecast._ls_many``'s (a0, r0, ssr) per k from P = phi_many(t, ks) (K, n), the square-root
+    weights ``sw``, the data ``y`` (n,) and ``prior_row`` ((weight, y_inf - floor) or None)."""
+    P = np.ascontiguousarray(P, dtype=float)
+    K = P.shape[0]
+    a, r, ssr = np.empty(K), np.empty(K), np.empty(K)
+    wp, yp = (0.0, 0.0) if prior_row is None else (float(prior_row[0]), float(prior_row[1]))
+    _LS(P, np.ascontiguousarray(sw, dtype=float), np.ascontiguousarray(y, dtype=float),
+        np.ascontiguousarray(ks, dtype=float), prior_row is not None, wp, yp, a, r, ssr)
+    return a, r, ssr

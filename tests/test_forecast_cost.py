@@ -367,6 +367,7 @@ def test_a_cycles_cost_over_its_non_zero_pieces_is_the_cost_over_every_piece(lev
     both restarts, sigma points stacked and alone, levels below the start and out of reach."""
     import dataclasses
     import model.analysis.cost as C
+    from model.analysis import speedkernel
     levels = sorted(levels)
     cost = CostCurve(levels, [1e4 * x * (1 + 0.3 * i) for i, x in enumerate(levels)])
     cov = np.diag([1e-4, 2e-5, 0.02][: 3 if law_ == "kern_seaton" else 2]) ** 2
@@ -375,13 +376,15 @@ def test_a_cycles_cost_over_its_non_zero_pieces_is_the_cost_over_every_piece(lev
              FoulingComponent(fit, s, cost, restart=restart, name="alone")]
     expanded = C._expand(comps)
     T = np.concatenate([np.geomspace(0.25, 365.0, 40), np.linspace(3.0, 4.0, 21)])
-    got = C._cycle_cost(expanded, T)
     orig = C._pieces
+    keep, speedkernel._KERNEL = speedkernel._KERNEL, None     # numpy's pieces (the kernel: test_speedkernel)
     try:
+        got = C._cycle_cost(expanded, T)
         C._pieces = lambda e: (e[:, :, :-1], np.diff(e, axis=2))
         ref = C._cycle_cost(expanded, T)
     finally:
         C._pieces = orig
+        speedkernel._KERNEL = keep
     assert np.array_equal(got, ref)
 
 
@@ -397,6 +400,8 @@ def test_sigma_points_in_one_array_give_each_points_own_cycle_cost(law_, restart
     component of its own (the pump's)."""
     import dataclasses
     import model.analysis.cost as C
+    from model.analysis import speedkernel
+    monkeypatch.setattr(speedkernel, "_KERNEL", None)       # numpy's (the kernel: test_speedkernel)
     fit = dataclasses.replace(law(law_, 3e-3, 0.2e-3, 15.0), cov=cov)
     R = FoulingComponent(fit, 0.3, CostCurve([0.0, 1e-3, 4e-3], [0.0, 40.0, 190.0]), restart=restart,
                          uncertain=True)

@@ -310,12 +310,57 @@ def test_forecast_least_squares_equal_numpy_to_the_bit(kernel):
     assert got[0][0] == pytest.approx(0.3, rel=1e-12) and got[2][0] == pytest.approx(0.0, abs=1e-24)
 
 
+def test_cycle_costs_equal_numpy_to_the_bit(kernel, monkeypatch):
+    """The CIP plan's cycle integrals (``cost._cycle_cost``) with and without the kernel: both laws,
+    the three restarts, sigma points stacked and alone beside the pump's component, cost curves of 2
+    to 10 points (past 8 pieces every piece integrated), levels below the start and out of reach,
+    cycles of 6 hours to a year; equal to the bit. A NaN cycle length makes NaN levels, where the
+    kernel hands back to numpy (whose ``interp`` of NaN it does not follow): still numpy's numbers."""
+    import dataclasses
+    import math
+    import model.analysis.cost as C
+    from model.analysis.cost import CostCurve, FoulingComponent
+    from model.analysis.forecast import FoulingFit
+
+    def law(name, y0, r0, tau, floor=0.0):
+        p = 3 if name == "kern_seaton" else 2
+        return FoulingFit(name, floor, y0 - floor, r0, 1.0 / tau if p == 3 else 0.0, np.zeros((p, p)), 1.0,
+                          1e-5, 100, 97.0, 0.0, 10.0, "given", math.nan)
+    calls = []
+    orig = speedkernel.cycle_cost
+    monkeypatch.setattr(speedkernel, "cycle_cost", lambda *a: (lambda r: calls.append(r is None) or r)(orig(*a)))
+    rng = np.random.default_rng(23)
+    T = np.concatenate([np.geomspace(0.25, 365.0, 100), np.linspace(3.0, 4.0, 21)])
+    for trial in range(60):
+        name = ("kern_seaton", "linear")[trial % 2]
+        restart = ("auto", "current", "steady")[trial % 3] if name == "kern_seaton" else ("auto", "current")[trial % 4 // 2]
+        nlev = 2 + trial % 9
+        levels = np.sort(rng.uniform(0.0, 6e-3, nlev))
+        cost = CostCurve(levels, np.cumsum(rng.uniform(0.0, 50.0, nlev)))
+        cov = np.diag([1e-4, 2e-5, 0.02][: 3 if name == "kern_seaton" else 2]) ** 2
+        fit = dataclasses.replace(law(name, rng.uniform(0.0, 3e-3), rng.uniform(0.0, 4e-4), rng.uniform(2.0, 60.0)),
+                                  cov=cov)
+        comps = [FoulingComponent(fit, float(rng.uniform(0.05, 1.0)), cost, restart=restart, uncertain=trial % 5 > 0),
+                 FoulingComponent(law("kern_seaton", 1.1, 0.02, 20.0, floor=1.0), 0.3, CostCurve([1.0, 2.0], [0.0, 9.0]))]
+        expanded = C._expand(comps)
+        ref, got = _both(lambda: C._cycle_cost(expanded, T))
+        _equal([ref], [got])
+        assert np.isfinite(got).all()
+    assert len(calls) >= 120 and not any(calls)          # every run of variants in the kernel
+    calls.clear()
+    Tn = T.copy()
+    Tn[5] = np.nan
+    ref, got = _both(lambda: C._cycle_cost(expanded, Tn))
+    _equal([ref], [got])
+    assert np.isnan(got[5]) and np.isfinite(np.delete(got, 5)).all() and any(calls)
+
+
 def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
     """numba installed but a kernel failing to compile: a RuntimeWarning naming the failure, every
     kernel off (numpy's numbers), and no second attempt in the process."""
     import numba
     keep = {k: getattr(speedkernel, k) for k in ("_KERNEL", "_CURVE", "_LIQ", "_SAT", "_DER", "_SC_PRE",
-                                                 "_SC_POST", "_SATF", "_VAP", "_RECT", "_LS", "_TRIED")}
+                                                 "_SC_POST", "_SATF", "_VAP", "_RECT", "_LS", "_CCN", "_CCS", "_TRIED")}
 
     def broken(*a, **k):
         raise TypeError("no LLVM here")
@@ -329,7 +374,7 @@ def test_kernels_that_do_not_compile_are_said_once_and_numpy_stays(monkeypatch):
             assert speedkernel.enable() is False
         assert not speedkernel.active() and speedkernel._SC_PRE is None and speedkernel._SAT is None
         assert speedkernel._SATF is None and speedkernel._VAP is None and speedkernel._RECT is None
-        assert speedkernel._LS is None
+        assert speedkernel._LS is None and speedkernel._CCN is None and speedkernel._CCS is None
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("error")

@@ -50,6 +50,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .forecast import FoulingFit, ForecastError
+from . import speedkernel as _kernels
 
 HOURS_PER_DAY = 24.0
 SECONDS_PER_DAY = 86400.0
@@ -571,6 +572,11 @@ def _stacked_cost(members, T) -> np.ndarray:
         y_post = floor + (1 - s) * U * (1 - E) / (1 - (1 - s) * E)
     else:
         y_post = floor + (1 - s) * r0 * Tm / s
+    if _kernels._KERNEL is not None:        # the rest compiled, to the bit (numpy's on a NaN level)
+        got = _kernels.cycle_cost(np.broadcast_to(y_post, (V, m)), k[:, 0], r0[:, 0], y_inf[:, 0],
+                                  law == "kern_seaton", f.levels, f.eur_per_day, T, _GL16_X, _GL16_W)
+        if got is not None:
+            return got
     # crossing_times(T, f.levels): (V, m, b)
     yp = y_post[:, :, None]
     x = np.asarray(f.levels, dtype=float)[None, None, :]
@@ -610,10 +616,12 @@ def _cycle_cost(expanded, T) -> np.ndarray:
     """Sum of w * integral_0^T f(level) dt. A CostCurve is piecewise linear: the integral is split
     where the path crosses its breakpoints, and each smooth piece gets 16 Gauss–Legendre nodes
     (exact to rounding for these laws); any other cost callable gets 48 nodes over [0, T]. A
-    component's sigma points in one set of array operations (``_stacked_cost``), added in order."""
+    component's sigma points in one set of array operations (``_stacked_cost``), added in order;
+    with the compiled kernels (``speedkernel.cycle_cost``) a variant alone goes there too (the same
+    numbers: tests/test_forecast_cost.py)."""
     total = np.zeros(T.shape)
     for stackable, members in _runs(expanded):
-        if stackable and len(members) > 1:
+        if stackable and (len(members) > 1 or _kernels._KERNEL is not None):
             S = _stacked_cost(members, T)
             for j, (wv, _) in enumerate(members):
                 total += wv * S[j]

@@ -19,7 +19,10 @@
   the effectiveness (``subcooler``: the same iteration, the same exits);
 - the fouling forecast's least squares for many k (``forecast._ls_many`` after numpy's ``expm1``:
   ``ls_rows``), whose sums over the estimates are numpy's pairwise sums (``_pw``, the order of
-  numpy's ``add.reduce`` of a contiguous row).
+  numpy's ``add.reduce`` of a contiguous row);
+- the CIP plan's cycle integrals (``cost._stacked_cost``: ``cycle_cost``) around numpy's ``log`` of
+  the crossing times and ``exp`` of the levels at the Gauss nodes: the crossing times, the window
+  of whole pieces, the nodes, the cost curve (``np.interp`` and its extrapolation) and the sums.
 
 Each computes every row with the same floating-point operations in the same order as the numpy
 version (``rows_at``, ``value_dn_rows`` and the ``phi`` of ``local_speed``; ``_Tables.value_v``;
@@ -47,6 +50,7 @@ _SC_PRE = _SC_POST = None   # the subcooler's Newton step, before and after its 
 _SATF = _VAP = None     # the saturation table with its range check and the vapour table
 _RECT = None            # the learner's distance to its covered bins
 _LS = None              # the forecast's least squares for many k
+_CCN = _CCS = None      # the cycle integrals' nodes and sums
 _TRIED = False
 
 
@@ -551,10 +555,115 @@ def _ls_rows(P, sw, y, ks, has_prior, wp, yp, a_out, r_out, ssr_out):
         ssr_out[k] = _pw(buf, 0, n)
 
 
+def _cc_nodes(yp, L, kk, r0, yi, x, T, ks, X16, W16):
+    """``cost._stacked_cost`` from the levels after each cycle's reset ``yp`` (V, m) to the Gauss
+    nodes: the crossing times of the cost curve's levels x (Kern–Seaton (``ks``): from L, numpy's
+    log of (y_inf - yp) / (y_inf - x); linear: (x - yp) / r0), clipped to [0, T]; the pieces between
+    them and the window of whole pieces around each cycle's non-zero ones (``cost._pieces``: its
+    width the largest of all cycles', every piece below 2 or above 8); the nodes' times and weights
+    (V, m, width x 16)."""
+    V, m = yp.shape
+    b = x.shape[0]
+    p = b + 1
+    E = np.empty((V, m, p + 1))
+    for v in range(V):
+        for j in range(m):
+            y = yp[v, j]
+            E[v, j, 0] = 0.0
+            for q in range(b):
+                if ks:
+                    tau = L[v, j, q] / kk[v]
+                    if x[q] >= yi[v]:
+                        tau = np.inf
+                elif r0[v] > 0:
+                    tau = (x[q] - y) / r0[v]
+                else:
+                    tau = np.inf
+                if x[q] <= y or tau != tau:
+                    tau = 0.0
+                E[v, j, q + 1] = _nmin(_nmax(tau, 0.0), T[j])
+            E[v, j, p] = T[j]
+    first = np.zeros((V, m), np.int64)
+    every = p < 2 or p > 8 or V * m == 0
+    width = p
+    if not every:
+        width = 0
+        for v in range(V):
+            for j in range(m):
+                f = -1
+                last = 0
+                for i in range(p):
+                    if E[v, j, i + 1] - E[v, j, i] != 0.0:
+                        if f < 0:
+                            f = i
+                        last = i
+                if f < 0:
+                    f = 0
+                first[v, j] = f
+                if last - f + 1 > width:
+                    width = last - f + 1
+        if width >= p:
+            every = True
+            width = p
+    w16 = width * 16
+    tau_out = np.empty((V, m, w16))
+    wts = np.empty((V, m, w16))
+    for v in range(V):
+        for j in range(m):
+            st = 0 if every else min(first[v, j], p - width)
+            for w in range(width):
+                a = E[v, j, st + w]
+                h = E[v, j, st + w + 1] - a
+                for q in range(16):
+                    tau_out[v, j, w * 16 + q] = h * X16[q] + a
+                    wts[v, j, w * 16 + q] = h * W16[q]
+    return tau_out, wts
+
+
+def _cc_sums(ex, tau, wts, yp, r0, yi, ks, cx, cf, out):
+    """The rest of ``cost._stacked_cost``: the levels at the nodes (Kern–Seaton: y_inf - ex (y_inf -
+    yp), ex numpy's exp(-k tau); linear: yp + r0 tau), the cost curve there (``CostCurve``:
+    ``np.interp`` between its points, linear beyond them), times the weights, summed per cycle as
+    numpy sums a row. False where a level or a cost is NaN (the caller then runs numpy's version,
+    whose ``interp`` of NaN this does not follow)."""
+    V, m, w16 = tau.shape
+    nx = cx.shape[0]
+    s_lo = (cf[1] - cf[0]) / (cx[1] - cx[0])
+    s_hi = (cf[nx - 1] - cf[nx - 2]) / (cx[nx - 1] - cx[nx - 2])
+    buf = np.empty(w16)
+    for v in range(V):
+        for j in range(m):
+            y = yp[v, j]
+            for q in range(w16):
+                if ks:
+                    lv = yi[v] - ex[v, j, q] * (yi[v] - y)
+                else:
+                    lv = y + r0[v] * tau[v, j, q]
+                if lv != lv:
+                    return False
+                if lv < cx[0]:
+                    fv = cf[0] + s_lo * (lv - cx[0])
+                elif lv > cx[nx - 1]:
+                    fv = cf[nx - 1] + s_hi * (lv - cx[nx - 1])
+                else:
+                    i = nx - 1
+                    while cx[i] > lv:
+                        i -= 1
+                    if i == nx - 1 or cx[i] == lv:
+                        fv = cf[i]
+                    else:
+                        fv = (cf[i + 1] - cf[i]) / (cx[i + 1] - cx[i]) * (lv - cx[i]) + cf[i]
+                if fv != fv:
+                    return False
+                buf[q] = fv * wts[v, j, q]
+            out[v, j] = _pw(buf, 0, w16)
+    return True
+
+
 def enable() -> bool:
     """Compile the kernel (once per process; numba's on-disk cache makes later processes quick).
     False, and the numpy search stays, when numba is not installed or fails to compile."""
-    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _RECT, _LS, _TRIED
+    global _KERNEL, _CURVE, _LIQ, _SAT, _DER, _SC_PRE, _SC_POST, _SATF, _VAP, _RECT, _LS, _CCN, _CCS, _TRIED
     if _KERNEL is not None or _TRIED:
         return _KERNEL is not None
     _TRIED = True
@@ -578,13 +687,15 @@ def enable() -> bool:
         _SATF = jit(type(_sat_full_rows)(_sat_full_rows.__code__, glb, _sat_full_rows.__name__))
         _VAP = jit(type(_vap_rows)(_vap_rows.__code__, glb, _vap_rows.__name__))
         _RECT = jit(type(_rect_min_rows)(_rect_min_rows.__code__, glb, _rect_min_rows.__name__))
-        glb = dict(_ls_rows.__globals__, _nmax=nmax)
+        glb = dict(_ls_rows.__globals__, _nmax=nmax, _nmin=nmin)
         glb["_pw_leaf"] = jit(_pw_leaf)
         glb["_pw"] = jit(type(_pw)(_pw.__code__, glb, _pw.__name__))
         _LS = jit(type(_ls_rows)(_ls_rows.__code__, glb, _ls_rows.__name__))
+        _CCN = jit(type(_cc_nodes)(_cc_nodes.__code__, glb, _cc_nodes.__name__))
+        _CCS = jit(type(_cc_sums)(_cc_sums.__code__, glb, _cc_sums.__name__))
         _probe()
     except Exception as exc:     # noqa: BLE001 -- any numba failure: the numpy search stays
-        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = _RECT = _LS = None
+        _KERNEL = _CURVE = _LIQ = _SAT = _DER = _SC_PRE = _SC_POST = _SATF = _VAP = _RECT = _LS = _CCN = _CCS = None
         # the same numbers either way, but a replay several times slower: say so once
         warnings.warn(f"numba {getattr(numba, '__version__', '?')} is installed but hp-edge's compiled kernels "
                       f"did not compile ({type(exc).__name__}: {exc}); replays run on numpy: the same "
@@ -615,6 +726,9 @@ def _probe() -> None:
     rect_min(np.zeros((1, 2)), np.zeros((1, 2)), np.ones(2), np.ones(2))
     ls_rows(np.ones((1, 2)), np.ones(2), np.ones(2), np.ones(1), None)
     ls_rows(np.ones((1, 2)), np.ones(2), np.ones(2), np.ones(1), (1.0, 1.0))
+    for ks in (True, False):
+        cycle_cost(np.ones((1, 1)), np.ones(1), np.ones(1), np.full(1, 2.0), ks, np.array([0.5, 1.5]),
+                   np.array([0.0, 1.0]), np.ones(1), np.zeros(16), np.ones(16))
     subcooler(np.zeros((2, 16)), np.zeros(1, dtype=np.intp), np.zeros((1, 1)), 0.0, 2.0, -2.0, z1 + 0.25,
               z1 + 1.0, z1 + 2.0, z1, z1 + 1.0, z1 + 1.0, z1 + 2.0, z1 + 10.0, 30, 1e-6)
 
@@ -767,3 +881,24 @@ def ls_rows(P, sw, y, ks, prior_row) -> tuple:
     _LS(P, np.ascontiguousarray(sw, dtype=float), np.ascontiguousarray(y, dtype=float),
         np.ascontiguousarray(ks, dtype=float), prior_row is not None, wp, yp, a, r, ssr)
     return a, r, ssr
+
+
+def cycle_cost(yp, k, r0, y_inf, ks: bool, cx, cf, T, X16, W16):
+    """``cost._stacked_cost``'s integrals (V, m) from the levels after the resets ``yp`` (V, m) of
+    the members (k, r0, y_inf per member; ``ks`` the Kern–Seaton law, else linear), the cost curve's
+    points (cx, cf) and the cycle lengths T (m,), with the Gauss nodes X16, W16 on [0, 1]; None
+    where a level or cost is NaN (numpy's version answers then)."""
+    f = lambda a: np.ascontiguousarray(a, dtype=float)      # noqa: E731
+    yp, k, r0, y_inf, cx, cf, T = f(yp), f(k), f(r0), f(y_inf), f(cx), f(cf), f(T)
+    L = np.zeros((1, 1, 1))
+    if ks:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            yi3 = y_inf[:, None, None]
+            L = np.log((yi3 - yp[:, :, None]) / (yi3 - cx[None, None, :]))
+    tau, wts = _CCN(yp, L, k, r0, y_inf, cx, T, bool(ks), f(X16), f(W16))
+    ex = tau
+    if ks:
+        ex = np.multiply(-k[:, None, None], tau)
+        np.exp(ex, out=ex)
+    out = np.empty(yp.shape)
+    return out if _CCS(ex, tau, wts, yp, r0, y_inf, bool(ks), cx, cf, out) else None

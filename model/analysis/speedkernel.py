@@ -472,32 +472,32 @@ def _pw(a, i0, n):
     an explicit stack: numba's cache cannot load a recursive function."""
     if n <= 128:
         return _pw_leaf(a, i0, n)
-    start = np.empty(64, np.int64)      # the nodes on the path from the root: start, length,
-    size = np.empty(64, np.int64)       # state (0 new, 1 its left half pending, 2 its right half
-    state = np.zeros(64, np.int64)      # pending with the left half's sum in ``left``)
+    start = np.empty(64, np.int64)      # the nodes on the path from the root: start, length, and
+    size = np.empty(64, np.int64)       # whether its right half is under way (its left half's
+    right = np.zeros(64, np.bool_)      # sum in ``left``)
     left = np.empty(64)
     top = 0
     start[0], size[0] = i0, n
     while True:
         m = size[top]
         if m > 128:                      # an inner node: its left half first
-            state[top] = 1
+            right[top] = False
             h = m // 2
             h -= h % 8
-            start[top + 1], size[top + 1], state[top + 1] = start[top], h, 0
+            start[top + 1], size[top + 1] = start[top], h
             top += 1
             continue
         v = _pw_leaf(a, start[top], m)
         top -= 1
-        while top >= 0 and state[top] == 2:     # right halves done: their parents' sums
+        while top >= 0 and right[top]:          # right halves done: their parents' sums
             v = left[top] + v
             top -= 1
         if top < 0:
             return v
-        left[top], state[top] = v, 2            # a left half done: its right half next
+        left[top], right[top] = v, True         # a left half done: its right half next
         h = size[top] // 2
         h -= h % 8
-        start[top + 1], size[top + 1], state[top + 1] = start[top] + h, size[top] - h, 0
+        start[top + 1], size[top + 1] = start[top] + h, size[top] - h
         top += 1
 
 
